@@ -1,0 +1,25 @@
+#!/usr/bin/env bash
+# The test suite on every backend (the README's test command).
+#   flex:    everything (unit tests, renderer, datasets, training, CLI)
+#   ndarray: renderer and grid tests
+#   wgpu:    everything backend-dependent, through Mesa's software Vulkan when no GPU is present
+#   real data (../shared/data: lego, fern): loaders and a short fit, when that folder exists
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+echo "== flex: full suite"
+REFNPR_BACKEND=flex cargo test --all-targets
+
+echo "== ndarray: renderer and grid"
+REFNPR_BACKEND=ndarray cargo test --test renderer --lib
+
+echo "== wgpu: renderer, training"
+REFNPR_BACKEND=wgpu cargo test --test renderer --test training
+
+DATA="${REFNPR_SHARED_DATA:-../shared/data}"
+if [ -d "$DATA/nerf_synthetic/lego" ] && [ -d "$DATA/nerf_llff_data/fern" ]; then
+  echo "== real data group ($DATA)"
+  REFNPR_SHARED_DATA="$DATA" REFNPR_BACKEND=flex cargo test --test real_data -- --ignored
+else
+  echo "== real data group NOT RUN: $DATA/{nerf_synthetic/lego,nerf_llff_data/fern} not found"
+fi

@@ -1,0 +1,104 @@
+//! Checkpoints: everything needed to render (grid, SH degree, bounds, NDC,
+//! dataset kind, config) plus the optimiser state for resuming, in one file
+//! written atomically (temporary file, then rename).
+
+use crate::camera::NdcParams;
+use crate::config::TrainConfig;
+use crate::data::DatasetKind;
+use crate::grid::{GridGeometry, RadianceGrid};
+use crate::tensor_util::{floats, to_vec};
+use anyhow::{Context, Result, bail};
+use burn::tensor::{Device, Tensor};
+use serde::{Deserialize, Serialize};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
+const MAGIC: &[u8; 8] = b"REFNPRG1";
+
+/// What a checkpoint says about its scene and run.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct CheckpointMeta {
+    /// Steps done when it was written.
+    pub step: usize,
+    pub geometry: GridGeometry,
+    pub sh_degree: u32,
+    pub ndc: Option<NdcParams>,
+    pub kind: DatasetKind,
+    pub background: [f32; 3],
+    pub near_far: Option<(f32, f32)>,
+    /// The dataset folder it was trained on.
+    pub data_dir: PathBuf,
+    pub config: TrainConfig,
+    /// Seconds of training so far (summed over resumed runs).
+    pub train_seconds: f64,
+}
+
+#[derive(Serialize, Deserialize)]
+struct Payload {
+    meta_json: String,
+    coords: Vec<u32>,
+    density: Vec<f32>,
+    sh: Vec<f32>,
+    opt_density: Vec<f32>,
+    opt_sh: Vec<f32>,
+}
+
+/// A loaded checkpoint.
+pub struct Checkpoint {
+    pub meta: CheckpointMeta,
+    pub grid: RadianceGrid,
+    /// RMSprop running averages [rows, 1] and [rows, 3B] (zeros if absent).
+    pub opt_density: Tensor<2>,
+    pub opt_sh: Tensor<2>,
+}
+
+/// The checkpoint path for a run folder or a checkpoint file path.
+pub fn resolve(path: &Path) -> PathBuf {
+    if path.is_dir() { path.join(CHECKPOINT_FILE) } else { path.to_path_buf() }
+}
+
+pub fn save(path: &Path, meta: &CheckpointMeta, grid: &RadianceGrid, opt_density: &Tensor<2>, opt_sh: &Tensor<2>) -> Result<()> {
+    let payload = Payload {
+        meta_json: serde_json::to_string(meta)?,
+        coords: grid.coords.clone(),
+        density: to_vec(grid.density.clone()),
+        sh: to_vec(grid.sh.clone()),
+        opt_density: to_vec(opt_density.clone()),
+        opt_sh: to_vec(opt_sh.clone()),
+    };
+    let tmp = path.with_extension("bin.tmp");
+    {
+        let file = std::fs::File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?;
+        let mut w = std::io::BufWriter::new(file);
+        w.write_all(MAGIC)?;
+        bincode::serialize_into(&mut w, &payload).context("serialising the checkpoint")?;
+        w.flush()?;
+        w.get_ref().sync_all().ok();
+    }
+    std::fs::rename(&tmp, path).with_context(|| format!("cannot move {} to {}", tmp.display(), path.display()))
+}
+
+pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
+    let path = resolve(path);
+    if !path.exists() {
+        bail!("no checkpoint at {} (train one with `refnpr train`)", path.display());
+    }
+    let bytes = std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
+    if bytes.len() < 8 || &bytes[..8] != MAGIC {
+        bail!("{} is not a refnpr checkpoint", path.display());
+    }
+    let p: Payload = bincode::deserialize(&bytes[8..]).with_context(|| format!("{} is corrupt", path.display()))?;
+    let meta: CheckpointMeta =
+        serde_json::from_str(&p.meta_json).with_context(|| format!("{}: corrupt metadata", path.display()))?;
+    let n = p.coords.len();
+    let cols = 3 * crate::sh::num_basis(meta.sh_degree);
+    let npts = meta.geometry.num_points();
+    if p.density.len() != n || p.sh.len() != n * cols || p.coords.iter().any(|&c| c as usize >= npts) {
+        bail!("{}: grid arrays have inconsistent sizes", path.display());
+    }
+    let grid = RadianceGrid::from_rows(meta.geometry, meta.sh_degree, p.coords, p.density, p.sh, device);
+    let opt_density = if p.opt_density.len() == n { floats(p.opt_density, [n, 1], device) } else { Tensor::zeros([n, 1], device) };
+    let opt_sh = if p.opt_sh.len() == n * cols { floats(p.opt_sh, [n, cols], device) } else { Tensor::zeros([n, cols], device) };
+    Ok(Checkpoint { meta, grid, opt_density, opt_sh })
+}

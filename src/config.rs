@@ -1,0 +1,238 @@
+//! Training configuration: TOML files with a default for every field.
+//! Unknown keys and out-of-range values are errors that name the file.
+
+use crate::data::{DatasetKind, LoadOptions};
+use crate::render::MarchParams;
+use anyhow::{Context, Result, bail};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The voxel grid and its coarse-to-fine schedule.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GridConfig {
+    /// Lattice resolution at the start.
+    pub initial_res: [usize; 3],
+    /// Steps at which the grid is pruned and upsampled ...
+    pub upsample_steps: Vec<usize>,
+    /// ... to these resolutions (same length as `upsample_steps`).
+    pub upsample_res: Vec<[usize; 3]>,
+    /// Spherical-harmonic degree of the colour (0, 1 or 2).
+    pub sh_degree: u32,
+    /// Initial density of every voxel.
+    pub init_density: f32,
+    /// Voxels whose density (and their neighbours') is below this are pruned before upsampling.
+    pub prune_threshold: f32,
+}
+
+impl Default for GridConfig {
+    fn default() -> Self {
+        Self {
+            initial_res: [128; 3],
+            upsample_steps: vec![],
+            upsample_res: vec![],
+            sh_degree: 2,
+            init_density: 0.1,
+            prune_threshold: 1.0,
+        }
+    }
+}
+
+/// Optimiser (RMSprop, as Plenoxels) and regularisers.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OptimConfig {
+    /// Total optimisation steps.
+    pub steps: usize,
+    /// Rays per step.
+    pub batch_rays: usize,
+    /// Density learning rate at the start and at the end (exponential decay).
+    pub lr_density: f32,
+    pub lr_density_final: f32,
+    /// SH learning rate at the start and at the end (exponential decay).
+    pub lr_sh: f32,
+    pub lr_sh_final: f32,
+    /// The density learning rate ramps up from `lr_delay_mult` x over these steps.
+    pub lr_delay_steps: usize,
+    pub lr_delay_mult: f32,
+    /// RMSprop decay of the squared-gradient average.
+    pub rmsprop_beta: f32,
+    pub eps: f32,
+    /// Total-variation weights on density and SH (on the voxels a step touches).
+    pub tv_density: f32,
+    pub tv_sh: f32,
+}
+
+impl Default for OptimConfig {
+    fn default() -> Self {
+        Self {
+            steps: 3000,
+            batch_rays: 4096,
+            lr_density: 30.0,
+            lr_density_final: 0.05,
+            lr_sh: 1e-2,
+            lr_sh_final: 5e-6,
+            lr_delay_steps: 200,
+            lr_delay_mult: 0.01,
+            rmsprop_beta: 0.95,
+            eps: 1e-8,
+            tv_density: 1e-5,
+            tv_sh: 1e-3,
+        }
+    }
+}
+
+/// Everything `refnpr train` needs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    /// Seed of every random choice (ray batches).
+    pub seed: u64,
+    pub data: LoadOptions,
+    pub grid: GridConfig,
+    pub march: MarchParams,
+    pub optim: OptimConfig,
+    /// Write a checkpoint every this many steps (and at the end).
+    pub checkpoint_every: usize,
+    /// Rays per chunk when rendering whole images.
+    pub render_chunk: usize,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            seed: 20200823,
+            data: LoadOptions::default(),
+            grid: GridConfig::default(),
+            march: MarchParams::default(),
+            optim: OptimConfig::default(),
+            checkpoint_every: 1000,
+            render_chunk: 8192,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// The built-in defaults for a dataset kind (the same values as `configs/<kind>.toml`).
+    pub fn for_kind(kind: DatasetKind) -> Self {
+        let mut c = Self::default();
+        match kind {
+            DatasetKind::Blender => {
+                c.grid.initial_res = [128; 3];
+                c.grid.upsample_steps = vec![1500];
+                c.grid.upsample_res = vec![[256; 3]];
+            }
+            DatasetKind::Llff => {
+                c.data.downscale = 8;
+                c.grid.initial_res = [256, 256, 64];
+                c.grid.upsample_steps = vec![1500];
+                c.grid.upsample_res = vec![[512, 512, 128]];
+                c.optim.tv_density = 5e-4;
+                c.optim.tv_sh = 5e-3;
+            }
+            DatasetKind::Nsvf => {
+                c.grid.initial_res = [128; 3];
+                c.grid.upsample_steps = vec![1500];
+                c.grid.upsample_res = vec![[256; 3]];
+                c.data.background = [0.0; 3];
+            }
+        }
+        c
+    }
+
+    /// Parses a TOML config (missing fields take `base`'s values) and validates it.
+    pub fn from_toml_str(text: &str, base: &TrainConfig, source: &str) -> Result<Self> {
+        let mut merged = toml::Value::try_from(base).context("serialising the default config")?;
+        let user: toml::Value = toml::from_str(text).with_context(|| format!("{source} is not valid TOML"))?;
+        merge(&mut merged, user);
+        let cfg: TrainConfig = merged.try_into().with_context(|| format!("{source}: invalid config"))?;
+        cfg.validate().with_context(|| format!("{source}: invalid config"))?;
+        Ok(cfg)
+    }
+
+    pub fn from_file(path: &Path, base: &TrainConfig) -> Result<Self> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read config {}", path.display()))?;
+        Self::from_toml_str(&text, base, &path.display().to_string())
+    }
+
+    /// Checks every value is in range.
+    pub fn validate(&self) -> Result<()> {
+        let g = &self.grid;
+        let o = &self.optim;
+        let m = &self.march;
+        if g.initial_res.iter().any(|&r| !(2..=2048).contains(&r)) {
+            bail!("grid.initial_res must be between 2 and 2048 per axis, got {:?}", g.initial_res);
+        }
+        if g.upsample_steps.len() != g.upsample_res.len() {
+            bail!("grid.upsample_steps and grid.upsample_res must have the same length");
+        }
+        if g.upsample_steps.windows(2).any(|w| w[0] >= w[1]) {
+            bail!("grid.upsample_steps must be increasing");
+        }
+        if g.upsample_res.iter().flatten().any(|&r| !(2..=2048).contains(&r)) {
+            bail!("grid.upsample_res entries must be between 2 and 2048 per axis");
+        }
+        if g.sh_degree > 2 {
+            bail!("grid.sh_degree must be 0, 1 or 2, got {}", g.sh_degree);
+        }
+        if !(g.init_density.is_finite() && g.prune_threshold.is_finite() && g.prune_threshold >= 0.0) {
+            bail!("grid.init_density must be finite and grid.prune_threshold >= 0");
+        }
+        if o.steps == 0 || o.batch_rays == 0 {
+            bail!("optim.steps and optim.batch_rays must be positive");
+        }
+        for (name, v) in [
+            ("optim.lr_density", o.lr_density),
+            ("optim.lr_density_final", o.lr_density_final),
+            ("optim.lr_sh", o.lr_sh),
+            ("optim.lr_sh_final", o.lr_sh_final),
+            ("optim.eps", o.eps),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                bail!("{name} must be a positive number, got {v}");
+            }
+        }
+        if !(0.0..1.0).contains(&o.rmsprop_beta) {
+            bail!("optim.rmsprop_beta must be in [0, 1), got {}", o.rmsprop_beta);
+        }
+        if !(0.0..=1.0).contains(&o.lr_delay_mult) {
+            bail!("optim.lr_delay_mult must be in [0, 1], got {}", o.lr_delay_mult);
+        }
+        if !(o.tv_density >= 0.0 && o.tv_sh >= 0.0) {
+            bail!("optim.tv_density and optim.tv_sh must be >= 0");
+        }
+        if !(m.step > 0.0 && m.step <= 4.0) {
+            bail!("march.step must be in (0, 4] voxels, got {}", m.step);
+        }
+        if !(m.stop_threshold > 0.0 && m.stop_threshold < 1.0) {
+            bail!("march.stop_threshold must be in (0, 1), got {}", m.stop_threshold);
+        }
+        if !(m.sigma_threshold >= 0.0 && m.depth_threshold > 0.0) {
+            bail!("march.sigma_threshold must be >= 0 and march.depth_threshold > 0");
+        }
+        if self.data.downscale == 0 || self.data.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+            bail!("data.downscale must be >= 1 and data.background in [0, 1]");
+        }
+        if self.checkpoint_every == 0 || self.render_chunk == 0 {
+            bail!("checkpoint_every and render_chunk must be positive");
+        }
+        Ok(())
+    }
+}
+
+/// Overlays `user` onto `base` table by table.
+fn merge(base: &mut toml::Value, user: toml::Value) {
+    match (base, user) {
+        (toml::Value::Table(b), toml::Value::Table(u)) => {
+            for (k, v) in u {
+                match b.get_mut(&k) {
+                    Some(slot) => merge(slot, v),
+                    None => {
+                        b.insert(k, v);
+                    }
+                }
+            }
+        }
+        (slot, v) => *slot = v,
+    }
+}

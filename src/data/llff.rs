@@ -1,0 +1,145 @@
+//! LLFF forward-facing layout: `poses_bounds.npy` + `images[_N]/`.
+//!
+//! Follows the NeRF / Plenoxels conventions: axes [down, right, back] are
+//! turned into [right, up, back], the scene is scaled so the nearest bound
+//! sits at 1/0.75, poses are recentred on their average, every 8th image is
+//! held out for testing, and rays are warped to NDC (near plane 1).
+
+use super::{Dataset, DatasetKind, LoadOptions, View, check_pose, check_sizes, npy, read_rgb};
+use crate::camera::{Camera, Intrinsics, NdcParams, average_pose};
+use anyhow::{Context, Result, bail};
+use glam::{Mat4, Vec3};
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+
+/// Hold out every `LLFF_HOLD`-th image as the test split.
+pub const LLFF_HOLD: usize = 8;
+
+fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut v: Vec<PathBuf> = std::fs::read_dir(dir)
+        .with_context(|| format!("cannot read {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            matches!(
+                p.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase()).as_deref(),
+                Some("png" | "jpg" | "jpeg")
+            )
+        })
+        .collect();
+    v.sort();
+    Ok(v)
+}
+
+/// Picks the image folder for a downscale factor: `images_<f>/` when present,
+/// else `images/` resized by f; with f = 1 and no `images/`, the first
+/// `images_<n>/` found (its own resolution).
+fn image_folder(dir: &Path, factor: u32) -> Result<(PathBuf, u32)> {
+    let exact = if factor > 1 { dir.join(format!("images_{factor}")) } else { dir.join("images") };
+    if exact.is_dir() {
+        return Ok((exact, 1));
+    }
+    if dir.join("images").is_dir() {
+        return Ok((dir.join("images"), factor));
+    }
+    if factor == 1 {
+        for f in [2, 4, 8, 16] {
+            let p = dir.join(format!("images_{f}"));
+            if p.is_dir() {
+                return Ok((p, 1));
+            }
+        }
+    }
+    bail!("{}: no image folder (looked for images_{factor}/ and images/)", dir.display())
+}
+
+pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
+    let npy_path = dir.join("poses_bounds.npy");
+    let arr = npy::read(&npy_path)?;
+    if arr.shape.len() != 2 || arr.shape[1] != 17 {
+        bail!("{}: expected shape (N, 17), found {:?}", npy_path.display(), arr.shape);
+    }
+    let n = arr.shape[0];
+    if n == 0 {
+        bail!("{}: holds no poses", npy_path.display());
+    }
+    if arr.data.iter().any(|v| !v.is_finite()) {
+        bail!("{}: contains NaN or infinite values", npy_path.display());
+    }
+    let (folder, resize) = image_folder(dir, opts.downscale)?;
+    let files = list_images(&folder)?;
+    if files.len() != n {
+        bail!(
+            "{}: {} poses but {} images in {}",
+            npy_path.display(), n, files.len(), folder.display()
+        );
+    }
+    // Raw poses: 3x5 row-major per image, then near, far.
+    let mut poses = Vec::with_capacity(n);
+    let mut bounds = Vec::with_capacity(n);
+    let mut hwf = (0.0f32, 0.0f32, 0.0f32);
+    for i in 0..n {
+        let row = &arr.data[i * 17..(i + 1) * 17];
+        let m = |r: usize, c: usize| row[r * 5 + c] as f32;
+        let col = |c: usize| Vec3::new(m(0, c), m(1, c), m(2, c));
+        // [down, right, back] -> [right, up, back]: x = old y, y = -old x.
+        let x = col(1);
+        let y = -col(0);
+        let z = col(2);
+        let t = col(3);
+        hwf = (m(0, 4), m(1, 4), m(2, 4));
+        poses.push(Mat4::from_cols(x.extend(0.0), y.extend(0.0), z.extend(0.0), t.extend(1.0)));
+        bounds.push((row[15] as f32, row[16] as f32));
+    }
+    let min_near = bounds.iter().map(|b| b.0).fold(f32::INFINITY, f32::min);
+    let max_far = bounds.iter().map(|b| b.1).fold(0.0f32, f32::max);
+    if !(min_near > 0.0) {
+        bail!("{}: near bounds must be positive (found {min_near})", npy_path.display());
+    }
+    let scale = 1.0 / (min_near * 0.75);
+    for p in poses.iter_mut() {
+        p.w_axis = (p.w_axis.truncate() * scale).extend(1.0);
+    }
+    let avg = average_pose(&poses);
+    let inv = avg.inverse();
+    let poses: Vec<Mat4> = poses.iter().map(|p| inv * *p).collect();
+    for (i, p) in poses.iter().enumerate() {
+        check_pose(p, &npy_path, &format!("image {i}"))?;
+    }
+
+    let loaded: Vec<Result<(u32, u32, Vec<f32>)>> =
+        files.par_iter().map(|f| read_rgb(f, opts.background, resize)).collect();
+    let mut views = Vec::with_capacity(n);
+    let (full_h, full_w, full_f) = hwf;
+    for (i, (img, file)) in loaded.into_iter().zip(&files).enumerate() {
+        let (w, h, rgb) = img?;
+        let f = full_f * w as f32 / full_w;
+        let intr = Intrinsics { width: w, height: h, fx: f, fy: f, cx: w as f32 * 0.5, cy: h as f32 * 0.5 };
+        let name = file.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| format!("{i}"));
+        views.push(View { name, camera: Camera::new(intr, poses[i]), rgb });
+    }
+    let intr = views[0].camera.intrinsics;
+    check_sizes(&views, &intr, &folder)?;
+    if (intr.height as f32 / intr.width as f32 - full_h / full_w).abs() > 0.02 {
+        bail!(
+            "{}: images are {}x{} but poses_bounds.npy says {}x{} (aspect ratios differ)",
+            folder.display(), intr.width, intr.height, full_w, full_h
+        );
+    }
+    let mut train = Vec::new();
+    let mut test = Vec::new();
+    for (i, v) in views.into_iter().enumerate() {
+        if i % LLFF_HOLD == 0 { test.push(v) } else { train.push(v) }
+    }
+    Ok(Dataset {
+        kind: DatasetKind::Llff,
+        root: dir.to_path_buf(),
+        train,
+        val: Vec::new(),
+        test,
+        background: opts.background,
+        bbox_min: Vec3::splat(-1.0),
+        bbox_max: Vec3::splat(1.0),
+        ndc: Some(NdcParams { width: intr.width as f32, height: intr.height as f32, focal: intr.fx, near: 1.0 }),
+        near_far: Some((min_near * scale, max_far * scale)),
+    })
+}

@@ -1,0 +1,23 @@
+//! refnpr: reference-based non-photorealistic radiance fields (Ref-NPR) on Burn.
+//!
+//! Stages, each a module with one job: `data` (scenes), `grid` + `render`
+//! (the radiance field and its differentiable volume renderer), `train`
+//! (photorealistic fitting), `checkpoint`, `metrics`, `imageio`.
+
+pub mod backend;
+pub mod bench;
+pub mod camera;
+pub mod checkpoint;
+pub mod config;
+pub mod data;
+pub mod demo;
+pub mod grid;
+pub mod imageio;
+pub mod metrics;
+pub mod render;
+pub mod render_path;
+pub mod sh;
+pub mod tensor_util;
+pub mod train;
+
+pub use backend::BackendKind;

@@ -1,0 +1,338 @@
+//! Volume rendering (paper eqs. 1-2, 4).
+//!
+//! Split in two as the design asks: plain Rust decides which samples exist
+//! (ray/box intersection, empty-space skipping through the voxel links and
+//! the density mirror, early termination), producing a packed list of
+//! samples; the differentiable part - trilinear gathers of density and SH,
+//! colours, transmittance, weights and the per-ray sums - is a Burn tensor
+//! graph over that list, so autodiff reaches the grid rows.
+
+use crate::camera::Ray;
+use crate::grid::RadianceGrid;
+use crate::sh;
+use crate::tensor_util::{floats, indices, to_vec};
+use burn::tensor::{Device, Int, Tensor, activation::relu};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// How rays are marched.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MarchParams {
+    /// Step between samples as a fraction of the smallest voxel edge (0.5 as in Plenoxels).
+    pub step: f32,
+    /// Samples whose interpolated density is at or below this are skipped.
+    pub sigma_threshold: f32,
+    /// A ray stops once its transmittance falls below this.
+    pub stop_threshold: f32,
+    /// Equation 4: depth is the first sample where the accumulated optical
+    /// depth sum(sigma * delta) over earlier samples reaches this (ln 2: transmittance 0.5).
+    pub depth_threshold: f32,
+}
+
+impl Default for MarchParams {
+    fn default() -> Self {
+        Self { step: 0.5, sigma_threshold: 1e-8, stop_threshold: 1e-4, depth_threshold: std::f32::consts::LN_2 }
+    }
+}
+
+/// Packed samples of a set of rays (plain Rust). Samples of ray r are
+/// `ray_offsets[r]..ray_offsets[r+1]`.
+#[derive(Debug, Default, Clone)]
+pub struct SampleBatch {
+    pub num_rays: usize,
+    pub ray_offsets: Vec<u32>,
+    /// 8 grid rows per sample (an inactive corner points at an active row with weight 0).
+    pub corner_rows: Vec<i32>,
+    /// 8 trilinear weights per sample (density: empty corners count as zero density).
+    pub corner_weights: Vec<f32>,
+    /// The same weights renormalised over the active corners (colour: empty
+    /// space has no colour, so it must not pull surfaces towards grey).
+    pub colour_weights: Vec<f32>,
+    /// Distance along the ray of each sample.
+    pub t: Vec<f32>,
+    /// Interval length of each sample.
+    pub delta: Vec<f32>,
+    /// SH basis of the sample's view direction, `num_basis` per sample.
+    pub basis: Vec<f32>,
+    /// Equation-4 depth per ray (None = miss), from the density mirror.
+    pub threshold_depth: Vec<Option<f32>>,
+}
+
+impl SampleBatch {
+    pub fn num_samples(&self) -> usize {
+        self.t.len()
+    }
+
+    pub fn max_samples_per_ray(&self) -> usize {
+        self.ray_offsets.windows(2).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0)
+    }
+}
+
+struct RaySamples {
+    rows: Vec<i32>,
+    weights: Vec<f32>,
+    colour_weights: Vec<f32>,
+    t: Vec<f32>,
+    delta: Vec<f32>,
+    depth: Option<f32>,
+}
+
+fn march_ray(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> RaySamples {
+    let mut out = RaySamples { rows: Vec::new(), weights: Vec::new(), colour_weights: Vec::new(), t: Vec::new(), delta: Vec::new(), depth: None };
+    let geo = &grid.geometry;
+    let Some((t0, t1)) = geo.intersect(ray.origin, ray.dir) else { return out };
+    let step = p.step * geo.voxel_size().min_element();
+    let log_stop = p.stop_threshold.ln();
+    let mut optical = 0.0f32; // sum of sigma * delta so far
+    let mut t = t0 + 0.5 * step;
+    while t < t1 {
+        let g = geo.world_to_grid(ray.origin + t * ray.dir);
+        let (idx, w) = geo.trilinear(g);
+        let mut rows = [-1i32; 8];
+        let mut first_active = -1;
+        let mut sigma = 0.0;
+        let mut wsum = 0.0;
+        for c in 0..8 {
+            let r = grid.links[idx[c]];
+            rows[c] = r;
+            if r >= 0 {
+                if first_active < 0 {
+                    first_active = r;
+                }
+                sigma += w[c] * grid.density_cpu[r as usize];
+                wsum += w[c];
+            }
+        }
+        if first_active >= 0 && sigma > p.sigma_threshold {
+            if out.depth.is_none() && optical >= p.depth_threshold {
+                out.depth = Some(t);
+            }
+            for c in 0..8 {
+                if rows[c] >= 0 {
+                    out.rows.push(rows[c]);
+                    out.weights.push(w[c]);
+                    out.colour_weights.push(w[c] / wsum);
+                } else {
+                    out.rows.push(first_active);
+                    out.weights.push(0.0);
+                    out.colour_weights.push(0.0);
+                }
+            }
+            out.t.push(t);
+            out.delta.push(step);
+            optical += sigma * step;
+            if -optical < log_stop {
+                break;
+            }
+        }
+        t += step;
+    }
+    if out.depth.is_none() && optical >= p.depth_threshold {
+        // Passed the threshold on the last sample: its far edge is the first point past it.
+        out.depth = out.t.last().map(|t| t + step);
+    }
+    out
+}
+
+/// Marches every ray (in parallel) and packs the samples.
+pub fn generate_samples(grid: &RadianceGrid, rays: &[Ray], params: &MarchParams) -> SampleBatch {
+    let nb = grid.num_basis();
+    let per_ray: Vec<RaySamples> = rays.par_iter().map(|r| march_ray(grid, r, params)).collect();
+    let total: usize = per_ray.iter().map(|s| s.t.len()).sum();
+    let mut b = SampleBatch {
+        num_rays: rays.len(),
+        ray_offsets: Vec::with_capacity(rays.len() + 1),
+        corner_rows: Vec::with_capacity(total * 8),
+        corner_weights: Vec::with_capacity(total * 8),
+        colour_weights: Vec::with_capacity(total * 8),
+        t: Vec::with_capacity(total),
+        delta: Vec::with_capacity(total),
+        basis: Vec::with_capacity(total * nb),
+        threshold_depth: Vec::with_capacity(rays.len()),
+    };
+    let mut basis = vec![0.0f32; nb];
+    b.ray_offsets.push(0);
+    for (ray, s) in rays.iter().zip(per_ray) {
+        sh::eval_basis(grid.sh_degree, ray.view_dir, &mut basis);
+        for _ in 0..s.t.len() {
+            b.basis.extend_from_slice(&basis);
+        }
+        b.corner_rows.extend(s.rows);
+        b.corner_weights.extend(s.weights);
+        b.colour_weights.extend(s.colour_weights);
+        b.t.extend(s.t);
+        b.delta.extend(s.delta);
+        b.threshold_depth.push(s.depth);
+        b.ray_offsets.push(b.t.len() as u32);
+    }
+    b
+}
+
+/// A sample batch uploaded to a device, ready for `composite`.
+pub struct BatchTensors {
+    pub num_rays: usize,
+    pub num_samples: usize,
+    /// Samples per ray in the padded [rays, K] layout.
+    pub k: usize,
+    pub corners: Tensor<1, Int>,
+    pub corner_weights: Tensor<2>,
+    pub colour_weights: Tensor<2>,
+    pub basis: Tensor<3>,
+    pub delta: Tensor<1>,
+    pub t: Tensor<1>,
+    /// For each padded slot, the packed sample index, or `num_samples` for padding.
+    pub pad_map: Tensor<1, Int>,
+}
+
+impl BatchTensors {
+    /// Uploads a batch. `remap` replaces each corner's grid row (e.g. by a
+    /// local row of a training step's parameter subset).
+    pub fn new(b: &SampleBatch, remap: Option<&dyn Fn(i32) -> i32>, device: &Device) -> Self {
+        let s = b.num_samples();
+        let nb = if s > 0 { b.basis.len() / s } else { 1 };
+        let k = b.max_samples_per_ray().max(1);
+        let mut pad = vec![s as i32; b.num_rays * k];
+        for r in 0..b.num_rays {
+            let (lo, hi) = (b.ray_offsets[r] as usize, b.ray_offsets[r + 1] as usize);
+            for (j, i) in (lo..hi).enumerate() {
+                pad[r * k + j] = i as i32;
+            }
+        }
+        let corners: Vec<i32> = match remap {
+            Some(f) => b.corner_rows.iter().map(|&r| f(r)).collect(),
+            None => b.corner_rows.clone(),
+        };
+        Self {
+            num_rays: b.num_rays,
+            num_samples: s,
+            k,
+            corners: indices(corners, device),
+            corner_weights: floats(b.corner_weights.clone(), [s * 8, 1], device),
+            colour_weights: floats(b.colour_weights.clone(), [s * 8, 1], device),
+            basis: floats(b.basis.clone(), [s, 1, nb], device),
+            delta: floats(b.delta.clone(), [s], device),
+            t: floats(b.t.clone(), [s], device),
+            pad_map: indices(pad, device),
+        }
+    }
+}
+
+/// What the differentiable renderer returns per ray.
+pub struct Rendered {
+    /// [rays, 3]
+    pub rgb: Tensor<2>,
+    /// Expected depth sum(w_i t_i), [rays]
+    pub depth: Tensor<1>,
+    /// Accumulated opacity 1 - T_final, [rays]
+    pub opacity: Tensor<1>,
+}
+
+/// Moves packed per-sample values into the padded [rays, K] layout (zero padding).
+fn to_padded<const D: usize>(packed: Tensor<D>, bt: &BatchTensors, tail: [usize; D]) -> Tensor<D> {
+    let mut zshape = tail;
+    zshape[0] = 1;
+    let zero = Tensor::zeros(zshape, &packed.device());
+    Tensor::cat(vec![packed, zero], 0).select(0, bt.pad_map.clone())
+}
+
+/// Equations 1-2 on the packed samples: density and colour by trilinear
+/// interpolation of the given rows (colour over the active corners only), then alpha compositing per ray, with
+/// `background` weighted by the remaining transmittance.
+pub fn composite(density_rows: Tensor<2>, sh_rows: Tensor<2>, bt: &BatchTensors, background: [f32; 3]) -> Rendered {
+    let device = density_rows.device();
+    let (r, s, k) = (bt.num_rays, bt.num_samples, bt.k);
+    let bg = floats(background.to_vec(), [1, 3], &device);
+    if s == 0 {
+        return Rendered {
+            rgb: bg.repeat_dim(0, r),
+            depth: Tensor::zeros([r], &device),
+            opacity: Tensor::zeros([r], &device),
+        };
+    }
+    let nb = sh_rows.dims()[1] / 3;
+    // Trilinear interpolation: gather the 8 corner rows, weight, sum.
+    let sigma = (density_rows.select(0, bt.corners.clone()) * bt.corner_weights.clone())
+        .reshape([s, 8])
+        .sum_dim(1)
+        .reshape([s]);
+    let sigma = relu(sigma);
+    let coeffs = (sh_rows.select(0, bt.corners.clone()) * bt.colour_weights.clone())
+        .reshape([s, 8, 3 * nb])
+        .sum_dim(1)
+        .reshape([s, 3, nb]);
+    let colour = relu((coeffs * bt.basis.clone()).sum_dim(2).reshape([s, 3]) + 0.5);
+
+    let tau = to_padded(sigma * bt.delta.clone(), bt, [s]).reshape([r, k]);
+    let optical = tau.clone().cumsum(1);
+    let transmittance = (tau.clone() - optical.clone()).exp(); // T_i = exp(-sum_{j<i} tau_j)
+    let weights = transmittance * (-(tau.neg().exp()) + 1.0);
+    let final_t = optical.narrow(1, k - 1, 1).neg().exp(); // [r, 1]
+
+    let colour = to_padded(colour, bt, [s, 3]).reshape([r, k, 3]);
+    let rgb = (weights.clone().reshape([r, k, 1]) * colour).sum_dim(1).reshape([r, 3]) + final_t.clone() * bg;
+    let t = to_padded(bt.t.clone(), bt, [s]).reshape([r, k]);
+    let depth = (weights * t).sum_dim(1).reshape([r]);
+    let opacity = (-final_t + 1.0).reshape([r]);
+    Rendered { rgb, depth, opacity }
+}
+
+/// A rendered image in plain buffers.
+pub struct ImageRender {
+    pub width: u32,
+    pub height: u32,
+    /// Row-major RGB in [0, 1].
+    pub rgb: Vec<f32>,
+    /// Expected depth (0 where nothing was hit).
+    pub expected_depth: Vec<f32>,
+    /// Equation-4 depth, None = miss.
+    pub threshold_depth: Vec<Option<f32>>,
+    pub opacity: Vec<f32>,
+}
+
+/// Renders rays in chunks (bounded memory at any resolution) without autodiff.
+pub fn render_rays(
+    grid: &RadianceGrid,
+    rays: &[Ray],
+    params: &MarchParams,
+    background: [f32; 3],
+    chunk: usize,
+) -> (Vec<f32>, Vec<f32>, Vec<Option<f32>>, Vec<f32>) {
+    let device = grid.device();
+    let (dens, sh) = (grid.density.clone().inner(), grid.sh.clone().inner());
+    let mut rgb = Vec::with_capacity(rays.len() * 3);
+    let mut depth = Vec::with_capacity(rays.len());
+    let mut tdepth = Vec::with_capacity(rays.len());
+    let mut opacity = Vec::with_capacity(rays.len());
+    for part in rays.chunks(chunk.max(1)) {
+        let batch = generate_samples(grid, part, params);
+        let bt = BatchTensors::new(&batch, None, &device);
+        let out = composite(dens.clone(), sh.clone(), &bt, background);
+        rgb.extend(to_vec(out.rgb));
+        depth.extend(to_vec(out.depth));
+        opacity.extend(to_vec(out.opacity));
+        tdepth.extend(batch.threshold_depth);
+    }
+    (rgb, depth, tdepth, opacity)
+}
+
+/// Renders a full camera view.
+pub fn render_view(
+    grid: &RadianceGrid,
+    camera: &crate::camera::Camera,
+    ndc: Option<&crate::camera::NdcParams>,
+    params: &MarchParams,
+    background: [f32; 3],
+    chunk: usize,
+) -> ImageRender {
+    let rays = camera.rays(ndc);
+    let (rgb, expected_depth, threshold_depth, opacity) = render_rays(grid, &rays, params, background, chunk);
+    ImageRender {
+        width: camera.intrinsics.width,
+        height: camera.intrinsics.height,
+        rgb: rgb.into_iter().map(|v| v.clamp(0.0, 1.0)).collect(),
+        expected_depth,
+        threshold_depth,
+        opacity,
+    }
+}

@@ -1,0 +1,47 @@
+//! Helpers shared by the integration tests.
+#![allow(dead_code)]
+
+use burn::tensor::Device;
+use refnpr::BackendKind;
+use std::path::PathBuf;
+
+/// The backend under test: `REFNPR_BACKEND` (flex when unset).
+pub fn backend() -> BackendKind {
+    BackendKind::from_env().expect("REFNPR_BACKEND names a backend")
+}
+
+pub fn device() -> Device {
+    backend().device()
+}
+
+/// A fresh temporary folder, removed when dropped.
+pub struct TempDir(pub PathBuf);
+
+impl TempDir {
+    pub fn new(tag: &str) -> Self {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        static N: AtomicUsize = AtomicUsize::new(0);
+        let p = std::env::temp_dir().join(format!(
+            "refnpr-test-{tag}-{}-{}",
+            std::process::id(),
+            N.fetch_add(1, Ordering::SeqCst)
+        ));
+        let _ = std::fs::remove_dir_all(&p);
+        std::fs::create_dir_all(&p).unwrap();
+        Self(p)
+    }
+    pub fn path(&self) -> &std::path::Path {
+        &self.0
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Tolerance for float comparisons: wgpu runs f32 kernels with other reduction orders.
+pub fn tol(cpu: f32) -> f32 {
+    if backend() == BackendKind::Wgpu { cpu * 10.0 } else { cpu }
+}
