@@ -61,6 +61,8 @@ pub struct OptimConfig {
     /// Total-variation weights on density and SH (on the voxels a step touches).
     pub tv_density: f32,
     pub tv_sh: f32,
+    /// Fraction of the voxels a step touches that get the TV terms (a random subset).
+    pub tv_fraction: f32,
 }
 
 impl Default for OptimConfig {
@@ -78,6 +80,7 @@ impl Default for OptimConfig {
             eps: 1e-8,
             tv_density: 1e-5,
             tv_sh: 1e-3,
+            tv_fraction: 0.1,
         }
     }
 }
@@ -200,6 +203,9 @@ impl TrainConfig {
         }
         if !(o.tv_density >= 0.0 && o.tv_sh >= 0.0) {
             bail!("optim.tv_density and optim.tv_sh must be >= 0");
+        }
+        if !(o.tv_fraction > 0.0 && o.tv_fraction <= 1.0) {
+            bail!("optim.tv_fraction must be in (0, 1], got {}", o.tv_fraction);
         }
         if !(m.step > 0.0 && m.step <= 4.0) {
             bail!("march.step must be in (0, 4] voxels, got {}", m.step);

@@ -75,7 +75,9 @@ struct LocalRows {
     num_core: usize,
 }
 
-fn local_rows(grid: &RadianceGrid, corner_rows: &[i32], mark: &mut Vec<i32>) -> LocalRows {
+/// `tv_fraction` of the touched rows (a deterministic random subset, as
+/// Plenoxels regularises a random subset of voxels each step) get TV terms.
+fn local_rows(grid: &RadianceGrid, corner_rows: &[i32], mark: &mut Vec<i32>, tv_fraction: f32, rng: &mut ChaCha8Rng) -> LocalRows {
     mark.clear();
     mark.resize(grid.num_rows(), -1);
     let mut rows = Vec::new();
@@ -85,7 +87,14 @@ fn local_rows(grid: &RadianceGrid, corner_rows: &[i32], mark: &mut Vec<i32>) -> 
             rows.push(r);
         }
     }
-    let num_core = rows.len();
+    // Move a random tv_fraction of the rows to the front: those are the TV voxels.
+    let num_core = ((rows.len() as f32 * tv_fraction).ceil() as usize).min(rows.len());
+    for i in 0..num_core {
+        let j = rng.random_range(i..rows.len());
+        rows.swap(i, j);
+        mark[rows[i] as usize] = i as i32;
+        mark[rows[j] as usize] = j as i32;
+    }
     let geo = grid.geometry;
     let mut neighbours: [Vec<i32>; 3] = [Vec::with_capacity(num_core), Vec::with_capacity(num_core), Vec::with_capacity(num_core)];
     for li in 0..num_core {
@@ -201,7 +210,7 @@ impl Trainer {
 
         let batch = render::generate_samples(&self.grid, &rays, &cfg.march);
         let mut mark = Vec::new();
-        let local = local_rows(&self.grid, &batch.corner_rows, &mut mark);
+        let local = local_rows(&self.grid, &batch.corner_rows, &mut mark, cfg.optim.tv_fraction, &mut rng);
         let rows_t = indices(local.rows.clone(), &plain);
         let bt = BatchTensors::new(&batch, Some(&|r: i32| mark[r as usize]), &plain);
 
@@ -271,8 +280,13 @@ fn rmsprop_rows(
     let v_old = avg.clone().select(0, rows.clone());
     let v_new = v_old.clone() * beta + grad.clone() * grad.clone() * (1.0 - beta);
     let update = grad / (v_new.clone().sqrt() + eps) * (-lr);
-    *avg = avg.clone().select_assign(0, rows.clone(), v_new - v_old, IndexingUpdateOp::Add);
-    *param = param.clone().select_assign(0, rows.clone(), update.clone(), IndexingUpdateOp::Add);
+    // Take the tensors out of their slots so they are uniquely owned and the
+    // backend can update them in place instead of copying the whole grid.
+    let device = param.device();
+    let a = std::mem::replace(avg, Tensor::zeros([1, 1], &device));
+    *avg = a.select_assign(0, rows.clone(), v_new - v_old, IndexingUpdateOp::Add);
+    let p = std::mem::replace(param, Tensor::zeros([1, 1], &device));
+    *param = p.select_assign(0, rows.clone(), update.clone(), IndexingUpdateOp::Add);
     old + update
 }
 

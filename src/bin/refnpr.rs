@@ -177,3 +177,9 @@ fn run() -> Result<()> {
     }
     Ok(())
 }
+
+// mimalloc keeps freed pages mapped: the renderer allocates and frees
+// tensors of tens of MB every step, which the system allocator returns to
+// the OS and page-faults back in (measured: a third of the time in the kernel).
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
