@@ -68,13 +68,13 @@ pub struct OptimConfig {
 impl Default for OptimConfig {
     fn default() -> Self {
         Self {
-            steps: 3000,
+            steps: 3600,
             batch_rays: 4096,
             lr_density: 30.0,
-            lr_density_final: 0.05,
+            lr_density_final: 1.0,
             lr_sh: 1e-2,
-            lr_sh_final: 5e-6,
-            lr_delay_steps: 200,
+            lr_sh_final: 1e-4,
+            lr_delay_steps: 100,
             lr_delay_mult: 0.01,
             rmsprop_beta: 0.95,
             eps: 1e-8,
@@ -121,22 +121,22 @@ impl TrainConfig {
         let mut c = Self::default();
         match kind {
             DatasetKind::Blender => {
-                c.grid.initial_res = [128; 3];
-                c.grid.upsample_steps = vec![1500];
-                c.grid.upsample_res = vec![[256; 3]];
+                c.grid.initial_res = [64; 3];
+                c.grid.upsample_steps = vec![250, 900];
+                c.grid.upsample_res = vec![[128; 3], [256; 3]];
             }
             DatasetKind::Llff => {
                 c.data.downscale = 8;
-                c.grid.initial_res = [256, 256, 64];
-                c.grid.upsample_steps = vec![1500];
-                c.grid.upsample_res = vec![[512, 512, 128]];
+                c.grid.initial_res = [128, 128, 32];
+                c.grid.upsample_steps = vec![250, 900];
+                c.grid.upsample_res = vec![[256, 256, 64], [512, 512, 128]];
                 c.optim.tv_density = 5e-4;
                 c.optim.tv_sh = 5e-3;
             }
             DatasetKind::Nsvf => {
-                c.grid.initial_res = [128; 3];
-                c.grid.upsample_steps = vec![1500];
-                c.grid.upsample_res = vec![[256; 3]];
+                c.grid.initial_res = [64; 3];
+                c.grid.upsample_steps = vec![250, 900];
+                c.grid.upsample_res = vec![[128; 3], [256; 3]];
                 c.data.background = [0.0; 3];
             }
         }
