@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct MarchParams {
-    /// Step between samples as a fraction of the smallest voxel edge (0.5 as in Plenoxels).
+    /// Step between samples in voxels, measured in lattice coordinates along the ray (0.5 as in Plenoxels).
     pub step: f32,
     /// Samples whose interpolated density is at or below this are skipped.
     pub sigma_threshold: f32,
@@ -82,7 +82,10 @@ fn march_ray(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> RaySamples {
     let mut out = RaySamples { rows: Vec::new(), weights: Vec::new(), colour_weights: Vec::new(), t: Vec::new(), delta: Vec::new(), depth: None };
     let geo = &grid.geometry;
     let Some((t0, t1)) = geo.intersect(ray.origin, ray.dir) else { return out };
-    let step = p.step * geo.voxel_size().min_element();
+    // The step is `p.step` voxels measured in lattice coordinates along this
+    // ray (as svox2 does), so anisotropic voxels (NDC grids are 4x deeper
+    // than wide) are not oversampled along their long axis.
+    let step = p.step / (ray.dir / geo.voxel_size()).length();
     let log_stop = p.stop_threshold.ln();
     let mut optical = 0.0f32; // sum of sigma * delta so far
     let mut t = t0 + 0.5 * step;
