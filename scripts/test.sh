@@ -6,6 +6,8 @@
 #   real data (../shared/data: lego, fern): loaders and a short fit, when that folder exists
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# wgpu (winit) warns when this is unset on headless machines.
+export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 
 echo "== flex: full suite"
 REFNPR_BACKEND=flex cargo test --all-targets

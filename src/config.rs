@@ -128,8 +128,9 @@ impl TrainConfig {
             DatasetKind::Llff => {
                 c.data.downscale = 8;
                 c.grid.initial_res = [128, 128, 32];
-                c.grid.upsample_steps = vec![250, 900];
-                c.grid.upsample_res = vec![[256, 256, 64], [512, 512, 128]];
+                c.grid.upsample_steps = vec![250];
+                c.grid.upsample_res = vec![[256, 256, 64]];
+                c.optim.steps = 2600;
                 c.optim.tv_density = 5e-4;
                 c.optim.tv_sh = 5e-3;
             }
