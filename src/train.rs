@@ -147,17 +147,17 @@ impl Trainer {
         let geo = GridGeometry::new(config.grid.initial_res, dataset.bbox_min, dataset.bbox_max);
         let grid = RadianceGrid::new_dense(geo, config.grid.sh_degree, config.grid.init_density, backend_device)?;
         let state = RmsState::zeros(&grid);
-        Ok(Self::assemble(dataset, config, grid, state, 0, 0.0, backend_device))
+        Ok(Self::assemble(dataset, config, grid, state, 0, 0.0))
     }
 
     /// Resumes from a checkpoint.
     pub fn resume(dataset: &Dataset, ckpt_path: &Path, backend_device: &Device) -> Result<Self> {
         let ck = checkpoint::load(ckpt_path, backend_device)?;
         let state = RmsState { density: ck.opt_density, sh: ck.opt_sh };
-        Ok(Self::assemble(dataset, ck.meta.config.clone(), ck.grid, state, ck.meta.step, ck.meta.train_seconds, backend_device))
+        Ok(Self::assemble(dataset, ck.meta.config.clone(), ck.grid, state, ck.meta.step, ck.meta.train_seconds))
     }
 
-    fn assemble(dataset: &Dataset, config: TrainConfig, grid: RadianceGrid, state: RmsState, step: usize, secs: f64, _device: &Device) -> Self {
+    fn assemble(dataset: &Dataset, config: TrainConfig, grid: RadianceGrid, state: RmsState, step: usize, secs: f64) -> Self {
         let (rays, colours) = training_rays(&dataset.train, dataset);
         Self {
             grid,
