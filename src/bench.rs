@@ -84,14 +84,8 @@ pub fn renderer_throughput(backend: BackendKind, res: usize, rays: usize, repeat
         // Forward + backward as a training step does it (touched rows as leaves).
         let t = Instant::now();
         let b = render::generate_samples(&grid, batch_rays, &params);
-        let mut mark = vec![-1i32; grid.num_rows()];
-        let mut rows = Vec::new();
-        for &r in &b.corner_rows {
-            if mark[r as usize] < 0 {
-                mark[r as usize] = rows.len() as i32;
-                rows.push(r);
-            }
-        }
+        let mut mark = Vec::new();
+        let rows = crate::train::touched_rows(grid.num_rows(), &b.corner_rows, &mut mark);
         let bt = BatchTensors::new(&b, Some(&|r: i32| mark[r as usize]), &device);
         let idx = indices(rows, &device);
         let ld = dens.clone().select(0, idx.clone()).autodiff().require_grad();

@@ -75,11 +75,11 @@ struct LocalRows {
     num_core: usize,
 }
 
-/// `tv_fraction` of the touched rows (a deterministic random subset, as
-/// Plenoxels regularises a random subset of voxels each step) get TV terms.
-fn local_rows(grid: &RadianceGrid, corner_rows: &[i32], mark: &mut Vec<i32>, tv_fraction: f32, rng: &mut ChaCha8Rng) -> LocalRows {
+/// The distinct grid rows in `corner_rows`, in first-seen order; `mark`
+/// becomes grid row -> local index (-1 where untouched).
+pub fn touched_rows(num_rows: usize, corner_rows: &[i32], mark: &mut Vec<i32>) -> Vec<i32> {
     mark.clear();
-    mark.resize(grid.num_rows(), -1);
+    mark.resize(num_rows, -1);
     let mut rows = Vec::new();
     for &r in corner_rows {
         if mark[r as usize] < 0 {
@@ -87,6 +87,13 @@ fn local_rows(grid: &RadianceGrid, corner_rows: &[i32], mark: &mut Vec<i32>, tv_
             rows.push(r);
         }
     }
+    rows
+}
+
+/// `tv_fraction` of the touched rows (a deterministic random subset, as
+/// Plenoxels regularises a random subset of voxels each step) get TV terms.
+fn local_rows(grid: &RadianceGrid, corner_rows: &[i32], mark: &mut Vec<i32>, tv_fraction: f32, rng: &mut ChaCha8Rng) -> LocalRows {
+    let mut rows = touched_rows(grid.num_rows(), corner_rows, mark);
     // Move a random tv_fraction of the rows to the front: those are the TV voxels.
     let num_core = ((rows.len() as f32 * tv_fraction).ceil() as usize).min(rows.len());
     for i in 0..num_core {
