@@ -1,6 +1,9 @@
-//! Renderer throughput benchmark (`refnpr bench`): rays per second of the
-//! forward pass and of forward + backward, on a synthetic scene at a given
-//! resolution. A benchmark, not a test: it reports medians, asserts nothing.
+//! Benchmarks, not tests: they report medians and assert nothing.
+//! - `refnpr bench`: renderer rays per second (forward, forward + backward) on
+//!   a synthetic scene at a given grid resolution;
+//! - `refnpr bench-vgg`: VGG16 forward and forward + backward milliseconds per
+//!   image size, the memory of forward + backward, and onnxruntime's CPU
+//!   forward on the same input in the same run as a yardstick.
 
 use crate::backend::BackendKind;
 use crate::camera::{Camera, Intrinsics, look_at};
@@ -114,4 +117,110 @@ pub fn renderer_throughput(backend: BackendKind, res: usize, rays: usize, repeat
         forward_backward_rays_per_s: median(fb),
         repeats,
     })
+}
+
+/// One VGG16 measurement (milliseconds are medians over the repeats).
+#[derive(Debug, Clone, Serialize)]
+pub struct VggBenchResult {
+    pub backend: String,
+    pub width: usize,
+    pub height: usize,
+    pub forward_ms: f64,
+    pub forward_backward_ms: f64,
+    /// Peak resident memory during one forward + backward, above the resident
+    /// memory before it (Linux; None elsewhere).
+    pub forward_backward_peak_mb: Option<f64>,
+    pub repeats: usize,
+}
+
+/// Resident memory now (VmRSS) in MB.
+fn rss_mb() -> Option<f64> {
+    proc_status_mb("VmRSS:")
+}
+
+fn proc_status_mb(key: &str) -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/self/status").ok()?;
+    let l = s.lines().find(|l| l.starts_with(key))?;
+    Some(l.split_whitespace().nth(1)?.parse::<f64>().ok()? / 1024.0)
+}
+
+/// Resets the process's peak-RSS counter (Linux >= 4.0), so VmHWM measures what follows.
+fn reset_peak_rss() -> bool {
+    std::fs::write("/proc/self/clear_refs", "5").is_ok()
+}
+
+/// VGG16 on a fixed-seed `[1, 3, height, width]` uniform image: forward (all
+/// 13 maps read back) and forward + backward of the sum of every relu3_x,
+/// relu4_x and relu5_x map (TCM and colour layers) to the input image.
+pub fn vgg_timing(backend: BackendKind, width: usize, height: usize, repeats: usize) -> Result<VggBenchResult> {
+    use crate::vgg::{Vgg16, VggLayer};
+    use burn::tensor::{Distribution, Tensor};
+    // Forward on the plain backend, forward + backward on its autodiff twin.
+    let plain = backend.device();
+    let device = backend.autodiff_device();
+    let vgg_plain = Vgg16::load(&plain);
+    let vgg = Vgg16::load(&device);
+    plain.seed(0);
+    let image_plain: Tensor<4> = Tensor::random([1, 3, height, width], Distribution::Uniform(0.0, 1.0), &plain);
+    let image = Tensor::<4>::from_data(image_plain.to_data(), &device);
+    let loss_layers: Vec<VggLayer> = VggLayer::TCM.iter().chain(VggLayer::COLOUR.iter()).copied().collect();
+    let mut fwd = Vec::new();
+    let mut fb = Vec::new();
+    let mut peak = None;
+    for rep in 0..repeats + 1 {
+        let t = Instant::now();
+        let maps = vgg_plain.features(image_plain.clone(), &VggLayer::ALL)?;
+        for (_, m) in maps.iter() {
+            let _ = to_vec(m.clone().sum());
+        }
+        let f_s = t.elapsed().as_secs_f64();
+        drop(maps);
+        let before = rss_mb();
+        let measured = rep == repeats && reset_peak_rss();
+        let t = Instant::now();
+        let x = image.clone().require_grad();
+        let maps = vgg.features(x.clone(), &loss_layers)?;
+        let loss = loss_layers.iter().map(|&l| maps.get(l).clone().mean()).reduce(|a, b| a + b).expect("layers");
+        let grads = loss.backward();
+        let _ = to_vec(x.grad(&grads).expect("image gradient"));
+        let fb_s = t.elapsed().as_secs_f64();
+        if measured {
+            peak = proc_status_mb("VmHWM:").zip(before).map(|(p, b)| p - b);
+        }
+        if rep > 0 {
+            // The first repetition warms up kernels and allocators.
+            fwd.push(f_s * 1e3);
+            fb.push(fb_s * 1e3);
+        }
+    }
+    Ok(VggBenchResult {
+        backend: backend.to_string(),
+        width,
+        height,
+        forward_ms: median(fwd),
+        forward_backward_ms: median(fb),
+        forward_backward_peak_mb: peak,
+        repeats,
+    })
+}
+
+/// onnxruntime's forward milliseconds (median) on the same input size, via
+/// `models/bench_onnxruntime.py`; an error says how to install it.
+pub fn onnxruntime_forward_ms(width: usize, height: usize, repeats: usize) -> Result<f64> {
+    let python = std::env::var("REFNPR_PYTHON").unwrap_or_else(|_| "python3".to_string());
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models/bench_onnxruntime.py");
+    let out = std::process::Command::new(&python)
+        .arg(&script)
+        .args(["--width", &width.to_string(), "--height", &height.to_string(), "--repeats", &repeats.to_string()])
+        .output()
+        .map_err(|e| anyhow::anyhow!("cannot run {python}: {e}"))?;
+    if !out.status.success() {
+        anyhow::bail!(
+            "{} failed (pip install onnxruntime onnx numpy?): {}",
+            script.display(),
+            String::from_utf8_lossy(&out.stderr).lines().last().unwrap_or("")
+        );
+    }
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout)?;
+    v["forward_ms_median"].as_f64().ok_or_else(|| anyhow::anyhow!("unexpected output from {}", script.display()))
 }

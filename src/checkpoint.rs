@@ -102,3 +102,12 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
     let opt_sh = if p.opt_sh.len() == n * cols { floats(p.opt_sh, [n, cols], device) } else { Tensor::zeros([n, cols], device) };
     Ok(Checkpoint { meta, grid, opt_density, opt_sh })
 }
+
+/// A checkpoint and the dataset it was trained on (or `data`, when given).
+pub fn load_run(path: &Path, data: Option<&Path>, device: &Device) -> Result<(Checkpoint, crate::data::Dataset)> {
+    let ck = load(path, device)?;
+    let dir = data.map(Path::to_path_buf).unwrap_or_else(|| ck.meta.data_dir.clone());
+    let dataset = crate::data::load(&dir, &ck.meta.config.data)
+        .with_context(|| format!("loading the run's dataset {} (pass --data to use another)", dir.display()))?;
+    Ok((ck, dataset))
+}

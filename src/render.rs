@@ -172,6 +172,12 @@ pub fn generate_samples(grid: &RadianceGrid, rays: &[Ray], params: &MarchParams)
     b
 }
 
+/// Only the equation-4 depth of every ray (None = miss): plain Rust, no
+/// tensors, for R³ and anything else that needs geometry but not colour.
+pub fn threshold_depths(grid: &RadianceGrid, rays: &[Ray], params: &MarchParams) -> Vec<Option<f32>> {
+    rays.par_iter().map(|r| march_ray(grid, r, params).depth).collect()
+}
+
 /// A sample batch uploaded to a device, ready for `composite`.
 pub struct BatchTensors {
     pub num_rays: usize,

