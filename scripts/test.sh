@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The test suite on every backend (the README's test command).
 #   flex:    everything (unit tests, renderer, datasets, training, CLI)
-#   ndarray: renderer and grid tests
-#   wgpu:    everything backend-dependent, through Mesa's software Vulkan when no GPU is present
+#   ndarray: renderer, grid and VGG16 tests
+#   wgpu:    renderer, training and VGG16, through Mesa's software Vulkan when no GPU is present
 #   real data (../shared/data: lego, fern): loaders and a short fit, when that folder exists
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,11 +12,11 @@ export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 echo "== flex: full suite"
 REFNPR_BACKEND=flex cargo test --all-targets
 
-echo "== ndarray: renderer and grid"
-REFNPR_BACKEND=ndarray cargo test --test renderer --lib
+echo "== ndarray: renderer, grid, VGG16"
+REFNPR_BACKEND=ndarray cargo test --test renderer --test vgg --lib
 
-echo "== wgpu: renderer, training"
-REFNPR_BACKEND=wgpu cargo test --test renderer --test training
+echo "== wgpu: renderer, training, VGG16"
+REFNPR_BACKEND=wgpu cargo test --test renderer --test training --test vgg
 
 DATA="${REFNPR_SHARED_DATA:-../shared/data}"
 if [ -d "$DATA/nerf_synthetic/lego" ] && [ -d "$DATA/nerf_llff_data/fern" ]; then

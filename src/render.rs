@@ -25,8 +25,9 @@ pub struct MarchParams {
     pub sigma_threshold: f32,
     /// A ray stops once its transmittance falls below this.
     pub stop_threshold: f32,
-    /// Equation 4: depth is the first sample where the accumulated optical
-    /// depth sum(sigma * delta) over earlier samples reaches this (ln 2: transmittance 0.5).
+    /// Equation 4: depth is where the accumulated optical depth
+    /// sum(sigma * delta) reaches this (ln 2: transmittance 0.5), located
+    /// inside the sample's segment assuming constant density there.
     pub depth_threshold: f32,
 }
 
@@ -108,9 +109,6 @@ fn march_ray(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> RaySamples {
             }
         }
         if first_active >= 0 && sigma > p.sigma_threshold {
-            if out.depth.is_none() && optical >= p.depth_threshold {
-                out.depth = Some(t);
-            }
             for c in 0..8 {
                 if rows[c] >= 0 {
                     out.rows.push(rows[c]);
@@ -124,16 +122,21 @@ fn march_ray(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> RaySamples {
             }
             out.t.push(t);
             out.delta.push(step);
+            let before = optical;
             optical += sigma * step;
+            if out.depth.is_none() && optical >= p.depth_threshold {
+                // Equation 4 at sub-sample precision: the sample stands for the
+                // segment [t - step/2, t + step/2] at constant density, so the
+                // accumulated optical depth reaches the threshold inside it here
+                // (a whole-sample answer is off by up to one step, which shifts
+                // R³'s points by a pixel at grazing angles).
+                out.depth = Some(t - 0.5 * step + (p.depth_threshold - before) / sigma);
+            }
             if -optical < log_stop {
                 break;
             }
         }
         t += step;
-    }
-    if out.depth.is_none() && optical >= p.depth_threshold {
-        // Passed the threshold on the last sample: its far edge is the first point past it.
-        out.depth = out.t.last().map(|t| t + step);
     }
     out
 }

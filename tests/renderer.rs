@@ -56,9 +56,9 @@ fn homogeneous_slab_matches_beer_lambert() {
             acc += sigma * step;
         }
         assert!((depth[r] - want_d).abs() < common::tol(1e-4), "depth {} vs {want_d}", depth[r]);
-        // Equation 4: first sample whose preceding optical depth reaches ln 2.
-        let k = (std::f32::consts::LN_2 / (sigma * step)).ceil();
-        let want_t = t0 + step * (k + 0.5);
+        // Equation 4: where the optical depth reaches ln 2, exactly t0 + ln2 / sigma
+        // in a homogeneous slab (located inside the sample's segment).
+        let want_t = t0 + std::f32::consts::LN_2 / sigma;
         assert!((tdepth[r].unwrap() - want_t).abs() < 1e-4, "{:?} vs {want_t}", tdepth[r]);
     }
 }

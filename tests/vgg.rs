@@ -4,7 +4,9 @@
 
 mod common;
 
-use burn::tensor::{Distribution, Tensor};
+use burn::tensor::Tensor;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use glam::Vec3;
 use refnpr::camera::{Camera, Intrinsics, look_at};
 use refnpr::data::npy;
@@ -110,9 +112,10 @@ fn input_gradient_matches_finite_differences() {
     let kind = common::backend();
     let device = kind.autodiff_device();
     let vgg = Vgg16::load(&device);
-    device.seed(7);
-    let image: Tensor<4> = Tensor::random([1, 3, 32, 32], Distribution::Uniform(0.0, 1.0), &device);
-    let probe: Tensor<4> = Tensor::random([1, 128, 16, 16], Distribution::Normal(0.0, 1.0), &device);
+    // Inputs from a seeded plain-Rust generator: the same numbers on every backend.
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let image = floats((0..3 * 32 * 32).map(|_| rng.random::<f32>()).collect(), [1, 3, 32, 32], &device);
+    let probe = floats((0..128 * 16 * 16).map(|_| rng.random::<f32>() - 0.5).collect(), [1, 128, 16, 16], &device);
     let map_of = |img: Tensor<4>| vgg.features(img, &[VggLayer::Relu2_2]).unwrap().take(VggLayer::Relu2_2);
     let loss_of = |img: Tensor<4>| (map_of(img) * probe.clone()).sum();
     let x = image.clone().require_grad();
@@ -143,7 +146,7 @@ fn input_gradient_matches_finite_differences() {
         let fd = to_vec(((f_plus - f_minus) * probe.clone() * window).sum())[0] / (2.0 * eps);
         let scale = grad[idx].abs().max(fd.abs()).max(1.0);
         println!("pixel {idx}: autodiff {:.4} finite difference {fd:.4}", grad[idx]);
-        assert!((grad[idx] - fd).abs() / scale < common::tol(3e-2), "pixel {idx}: {} vs {fd}", grad[idx]);
+        assert!((grad[idx] - fd).abs() / scale < common::tol(2e-2), "pixel {idx}: {} vs {fd}", grad[idx]);
         checked += 1;
     }
     assert_eq!(checked, 6);
