@@ -130,6 +130,7 @@ pub struct VggBenchResult {
     /// Peak resident memory during one forward + backward, above the resident
     /// memory before it (Linux; None elsewhere).
     pub forward_backward_peak_mb: Option<f64>,
+    pub warmup: usize,
     pub repeats: usize,
 }
 
@@ -152,7 +153,8 @@ fn reset_peak_rss() -> bool {
 /// VGG16 on a fixed-seed `[1, 3, height, width]` uniform image: forward (all
 /// 13 maps read back) and forward + backward of the sum of every relu3_x,
 /// relu4_x and relu5_x map (TCM and colour layers) to the input image.
-pub fn vgg_timing(backend: BackendKind, width: usize, height: usize, repeats: usize) -> Result<VggBenchResult> {
+pub fn vgg_timing(backend: BackendKind, width: usize, height: usize, warmup: usize, repeats: usize) -> Result<VggBenchResult> {
+    anyhow::ensure!(repeats >= 1, "repeats must be at least 1");
     use crate::vgg::{Vgg16, VggLayer};
     use burn::tensor::{Distribution, Tensor};
     // Forward on the plain backend, forward + backward on its autodiff twin.
@@ -167,7 +169,7 @@ pub fn vgg_timing(backend: BackendKind, width: usize, height: usize, repeats: us
     let mut fwd = Vec::new();
     let mut fb = Vec::new();
     let mut peak = None;
-    for rep in 0..repeats + 1 {
+    for rep in 0..warmup + repeats {
         let t = Instant::now();
         let maps = vgg_plain.features(image_plain.clone(), &VggLayer::ALL)?;
         for (_, m) in maps.iter() {
@@ -176,7 +178,7 @@ pub fn vgg_timing(backend: BackendKind, width: usize, height: usize, repeats: us
         let f_s = t.elapsed().as_secs_f64();
         drop(maps);
         let before = rss_mb();
-        let measured = rep == repeats && reset_peak_rss();
+        let measured = rep + 1 == warmup + repeats && reset_peak_rss();
         let t = Instant::now();
         let x = image.clone().require_grad();
         let maps = vgg.features(x.clone(), &loss_layers)?;
@@ -187,8 +189,8 @@ pub fn vgg_timing(backend: BackendKind, width: usize, height: usize, repeats: us
         if measured {
             peak = proc_status_mb("VmHWM:").zip(before).map(|(p, b)| p - b);
         }
-        if rep > 0 {
-            // The first repetition warms up kernels and allocators.
+        if rep >= warmup {
+            // Warm-up repetitions compile kernels and fill allocators.
             fwd.push(f_s * 1e3);
             fb.push(fb_s * 1e3);
         }
@@ -200,6 +202,7 @@ pub fn vgg_timing(backend: BackendKind, width: usize, height: usize, repeats: us
         forward_ms: median(fwd),
         forward_backward_ms: median(fb),
         forward_backward_peak_mb: peak,
+        warmup,
         repeats,
     })
 }

@@ -294,12 +294,5 @@ pub fn read_style(path: &Path, width: u32, height: u32, background: [f32; 3]) ->
         ));
         img = image::imageops::resize(&img, width, height, image::imageops::FilterType::CatmullRom);
     }
-    let mut rgb = Vec::with_capacity((width * height * 3) as usize);
-    for p in img.pixels() {
-        let a = p[3].clamp(0.0, 1.0);
-        for c in 0..3 {
-            rgb.push(p[c].clamp(0.0, 1.0) * a + background[c] * (1.0 - a));
-        }
-    }
-    Ok((rgb, note))
+    Ok((crate::data::composite_over(&img, background), note))
 }

@@ -251,3 +251,95 @@ fn registration_with_trained_depth() {
     assert!(false_rate <= 0.05, "false registration {false_rate:.4}");
     assert!(coverage >= 0.6, "coverage {coverage:.3}");
 }
+
+/// The measurements behind the defaults (not a check; prints a table):
+/// `cargo test --test register parameter_sweep -- --ignored --nocapture`.
+#[test]
+#[ignore]
+fn parameter_sweep() {
+    let (scene, cams) = scene_views();
+    let views: Vec<GtView> = cams.iter().map(|c| gt_view(&scene, *c)).collect();
+    println!("{:>8} {:>5} {:>5} {:>7} {:>10} {:>9} {:>9} {:>9}", "dict_res", "cap", "K", "cos", "registered", "coverage", "accuracy", "false");
+    for (dict_res, cap, k, cos) in [
+        (512, false, 1, 0.3),
+        (512, false, 8, 0.6),
+        (256, false, 8, 0.6),
+        (512, true, 8, 0.6),
+        (512, true, 1, 0.6),
+        (512, true, 8, 0.3),
+        (512, true, 8, 0.8),
+        (256, true, 8, 0.6),
+    ] {
+        let params = RegisterParams { dict_res, cap_to_footprint: cap, per_voxel: k, cos_threshold: cos, ..Default::default() };
+        let s = score(&[&views[0]], &views[1..], &params);
+        println!(
+            "{dict_res:>8} {cap:>5} {k:>5} {cos:>7.2} {:>10} {:>9.3} {:>9.4} {:>9.4}",
+            s.registered,
+            s.registered_in_angle as f32 / s.visible_in_angle as f32,
+            s.correct as f32 / s.registered as f32,
+            s.hidden_registered as f32 / s.hidden as f32
+        );
+    }
+}
+
+/// `register` end to end on a quickly fitted tiny scene: the case folder
+/// (reference.toml with a painted view from the scene's stylized twin), the
+/// written files, and a camera looking away from the scene (a warning and
+/// nothing registered, not a crash).
+#[test]
+fn register_command_writes_its_outputs_and_survives_a_camera_looking_away() {
+    use refnpr::config::TrainConfig;
+    use refnpr::data::{self, DatasetKind};
+    use refnpr::reference::ReferenceCase;
+    use refnpr::registration::{RegistrationFile, run_register, write_reference_skeleton};
+    let t = common::TempDir::new("r3-cmd");
+    let opts = SceneOptions { seed: 3, size: 32, num_train: 8, num_val: 1, num_test: 1 };
+    let scene_dir = t.path().join("scene");
+    procedural::write_scene(&scene_dir, &opts).unwrap();
+    let ds = data::load(&scene_dir, &Default::default()).unwrap();
+    let mut c = TrainConfig::for_kind(DatasetKind::Blender);
+    c.grid.initial_res = [24; 3];
+    c.grid.upsample_steps = vec![];
+    c.grid.upsample_res = vec![];
+    c.grid.sh_degree = 0;
+    c.optim.steps = 60;
+    c.optim.batch_rays = 1024;
+    c.checkpoint_every = 60;
+    let run = t.path().join("run");
+    refnpr::train::run_training(&ds, c, &run, common::backend(), false).unwrap();
+    let ck = refnpr::checkpoint::load(&run, &common::device()).unwrap();
+
+    // `refnpr reference`: content view, depth and a skeleton naming style.png.
+    let case = t.path().join("case");
+    write_reference_skeleton(&ck, &ds, &"train:2".parse().unwrap(), &case).unwrap();
+    for f in ["content.png", "depth.png", "depth.npy", "reference.toml"] {
+        assert!(case.join(f).exists(), "{f} missing");
+    }
+    // The "painting": the stylized twin of that training view.
+    std::fs::copy(scene_dir.join("stylized/train/r_2.png"), case.join("style.png")).unwrap();
+    let loaded = ReferenceCase::load(&case).unwrap();
+    let out = t.path().join("r3");
+    let report = run_register(&ck, &ds, &loaded, &Default::default(), &out, 3).unwrap();
+    assert_eq!(report.fraction_per_view.len(), 8);
+    assert!(report.fraction_per_view[2] > 0.9, "the reference view registers onto itself: {:?}", report.fraction_per_view);
+    assert!(report.fraction_overall > 0.1 && report.registered_pixels > 0);
+    let file = RegistrationFile::load(&out).unwrap();
+    assert_eq!(file.views.len(), 8);
+    assert_eq!(file.references.len(), 1);
+    assert_eq!(file.views.iter().map(|v| v.registration.pixels.len()).sum::<usize>(), report.registered_pixels);
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("register.json")).unwrap()).unwrap();
+    for key in ["fraction_per_view", "fraction_overall", "register_seconds", "dictionary_seconds", "depth_seconds"] {
+        assert!(json.get(key).is_some(), "register.json lacks {key}");
+    }
+    assert_eq!(std::fs::read_dir(out.join("overlays")).unwrap().count(), 3);
+
+    // A camera looking away from the scene (at z = 6, its -z axis turned to +z): warning, zero registered.
+    let away = "[[reference]]\nstyle = \"style.png\"\n\
+                c2w = [[1.0,0.0,0.0,0.0],[0.0,-1.0,0.0,0.0],[0.0,0.0,-1.0,6.0],[0.0,0.0,0.0,1.0]]\n\
+                intrinsics = { width = 32, height = 32, fx = 40.0, fy = 40.0, cx = 16.0, cy = 16.0 }\n";
+    std::fs::write(case.join("reference.toml"), away).unwrap();
+    let loaded = ReferenceCase::load(&case).unwrap();
+    let report = run_register(&ck, &ds, &loaded, &Default::default(), &t.path().join("r3-away"), 0).unwrap();
+    assert_eq!(report.registered_pixels, 0);
+    assert!(report.warnings.iter().any(|w| w.contains("sees nothing")), "{:?}", report.warnings);
+}

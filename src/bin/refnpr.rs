@@ -52,6 +52,9 @@ enum Command {
         /// Image sizes, WIDTHxHEIGHT.
         #[arg(long, value_delimiter = ',', default_value = "256x256,504x378")]
         sizes: Vec<String>,
+        /// Unmeasured passes first (kernel compilation, allocator warm-up).
+        #[arg(long, default_value_t = 1)]
+        warmup: usize,
         #[arg(long, default_value_t = 3)]
         repeats: usize,
         /// Skip the onnxruntime yardstick (needs python3 with onnxruntime).
@@ -202,7 +205,7 @@ fn run() -> Result<()> {
                     .with_context(|| format!("cannot write {}", p.display()))?;
             }
         }
-        Command::BenchVgg { backends, sizes, repeats, no_onnxruntime, json } => {
+        Command::BenchVgg { backends, sizes, warmup, repeats, no_onnxruntime, json } => {
             let mut sizes_wh = Vec::new();
             for s in &sizes {
                 let parsed = s.split_once('x').and_then(|(w, h)| Some((w.parse::<usize>().ok()?, h.parse::<usize>().ok()?)));
@@ -231,7 +234,7 @@ fn run() -> Result<()> {
             let mut results = Vec::new();
             for b in backends.unwrap_or(BackendKind::ALL.to_vec()) {
                 for (&(w, h), ort_ms) in sizes_wh.iter().zip(&ort) {
-                    let m = refnpr::bench::vgg_timing(b, w, h, repeats)?;
+                    let m = refnpr::bench::vgg_timing(b, w, h, warmup, repeats)?;
                     let ratio = ort_ms.map(|o| format!("{:.2}", m.forward_backward_ms / o)).unwrap_or("-".into());
                     let mem = m.forward_backward_peak_mb.map(|v| format!("{v:.0}")).unwrap_or("-".into());
                     println!(

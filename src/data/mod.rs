@@ -177,14 +177,19 @@ pub fn read_rgb(path: &Path, background: [f32; 3], downscale: u32) -> Result<(u3
         img = image::imageops::resize(&img, w, h, image::imageops::FilterType::Triangle);
     }
     let (w, h) = img.dimensions();
-    let mut rgb = Vec::with_capacity((w * h * 3) as usize);
+    Ok((w, h, composite_over(&img, background)))
+}
+
+/// Interleaved RGB in [0,1] of an RGBA image composited over `background`.
+pub fn composite_over(img: &image::Rgba32FImage, background: [f32; 3]) -> Vec<f32> {
+    let mut rgb = Vec::with_capacity(img.pixels().len() * 3);
     for p in img.pixels() {
         let a = p[3].clamp(0.0, 1.0);
         for c in 0..3 {
             rgb.push(p[c].clamp(0.0, 1.0) * a + background[c] * (1.0 - a));
         }
     }
-    Ok((w, h, rgb))
+    rgb
 }
 
 /// Checks a pose for NaN / non-invertible rotation, naming the file.
