@@ -22,8 +22,12 @@ const MAGIC: &[u8; 8] = b"REFNPRR1";
 
 /// The surface a camera sees in the photoreal field (equation-4 depth).
 pub fn field_surface(ck: &Checkpoint, camera: &Camera) -> Surface {
+    surface_with(&render::DepthMarcher::new(&ck.grid), ck, camera)
+}
+
+fn surface_with(marcher: &render::DepthMarcher, ck: &Checkpoint, camera: &Camera) -> Surface {
     let rays = camera.rays(ck.meta.ndc.as_ref());
-    let depth = render::threshold_depths(&ck.grid, &rays, &ck.meta.config.march);
+    let depth = marcher.depths(&rays, &ck.meta.config.march);
     Surface::from_depth(&rays, &depth, camera.intrinsics.width as usize, camera.intrinsics.height as usize)
 }
 
@@ -137,6 +141,7 @@ pub fn register_case(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, p
         warnings.push(w);
     }
     let t0 = Instant::now();
+    let marcher = render::DepthMarcher::new(&ck.grid);
     let cameras = case.cameras(dataset)?;
     let mut refs = Vec::new();
     let mut ref_pixels = Vec::new();
@@ -147,7 +152,7 @@ pub fn register_case(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, p
             eprintln!("note: {n}");
             warnings.push(n);
         }
-        let surface = field_surface(ck, cam);
+        let surface = surface_with(&marcher, ck, cam);
         if surface.num_hits() == 0 {
             let msg = format!("reference {} ({}) sees nothing of the scene: it contributes no rays", spec.style.display(), spec.view);
             eprintln!("warning: {msg}");
@@ -157,7 +162,7 @@ pub fn register_case(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, p
         ref_pixels.push(ReferencePixels { camera: *cam, colours: colours.clone(), hits: surface.points.iter().map(|p| p.is_some()).collect() });
         refs.push(Reference { surface, colours });
     }
-    let views: Vec<Surface> = dataset.train.iter().map(|v| field_surface(ck, &v.camera)).collect();
+    let views: Vec<Surface> = dataset.train.iter().map(|v| surface_with(&marcher, ck, &v.camera)).collect();
     let depth_seconds = t0.elapsed().as_secs_f64();
 
     let t1 = Instant::now();

@@ -79,35 +79,154 @@ struct RaySamples {
     depth: Option<f32>,
 }
 
-fn march_ray(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> RaySamples {
-    let mut out = RaySamples { rows: Vec::new(), weights: Vec::new(), colour_weights: Vec::new(), t: Vec::new(), delta: Vec::new(), depth: None };
-    let geo = &grid.geometry;
-    let Some((t0, t1)) = geo.intersect(ray.origin, ray.dir) else { return out };
-    // The step is `p.step` voxels measured in lattice coordinates along this
-    // ray (as svox2 does), so anisotropic voxels (NDC grids are 4x deeper
-    // than wide) are not oversampled along their long axis.
-    let step = p.step / (ray.dir / geo.voxel_size()).length();
-    let log_stop = p.stop_threshold.ln();
-    let mut optical = 0.0f32; // sum of sigma * delta so far
-    let mut t = t0 + 0.5 * step;
-    while t < t1 {
-        let g = geo.world_to_grid(ray.origin + t * ray.dir);
-        let (idx, w) = geo.trilinear(g);
-        let mut rows = [-1i32; 8];
-        let mut first_active = -1;
-        let mut sigma = 0.0;
-        let mut wsum = 0.0;
-        for c in 0..8 {
-            let r = grid.links[idx[c]];
-            rows[c] = r;
-            if r >= 0 {
-                if first_active < 0 {
-                    first_active = r;
+/// The 8 lattice corners around a point: their rows (-1 = empty), trilinear
+/// weights, the first active row, the interpolated density (empty = 0) and
+/// the weight of the active corners.
+struct Corners {
+    rows: [i32; 8],
+    w: [f32; 8],
+    first_active: i32,
+    sigma: f32,
+    wsum: f32,
+}
+
+fn corners(grid: &RadianceGrid, pos: glam::Vec3) -> Corners {
+    let (idx, w) = grid.geometry.trilinear(grid.geometry.world_to_grid(pos));
+    let mut out = Corners { rows: [-1; 8], w, first_active: -1, sigma: 0.0, wsum: 0.0 };
+    for c in 0..8 {
+        let r = grid.links[idx[c]];
+        out.rows[c] = r;
+        if r >= 0 {
+            if out.first_active < 0 {
+                out.first_active = r;
+            }
+            out.sigma += w[c] * grid.density_cpu[r as usize];
+            out.wsum += w[c];
+        }
+    }
+    out
+}
+
+/// The per-ray step: `p.step` voxels measured in lattice coordinates along
+/// the ray (as svox2 does), so anisotropic voxels (NDC grids are 4x deeper
+/// than wide) are not oversampled along their long axis.
+fn ray_step(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> f32 {
+    p.step / (ray.dir / grid.geometry.voxel_size()).length()
+}
+
+/// Equation-4 depths without tensors, for R³: the same march and the same
+/// sub-sample crossing as `march_ray`, stopping at the crossing, and skipping
+/// 8³ blocks of the lattice that hold no active point. A block is empty when
+/// no lattice point of its 9³ closure is active, so every sample whose
+/// trilinear base lies in it has 8 empty corners: skipping is exact.
+pub struct DepthMarcher<'a> {
+    grid: &'a RadianceGrid,
+    blocks: [usize; 3],
+    occupied: Vec<bool>,
+}
+
+const BLOCK: usize = 8;
+
+impl<'a> DepthMarcher<'a> {
+    pub fn new(grid: &'a RadianceGrid) -> Self {
+        let res = grid.geometry.res;
+        let blocks = res.map(|r| r.div_ceil(BLOCK).max(1));
+        let mut occupied = vec![false; blocks[0] * blocks[1] * blocks[2]];
+        // The blocks whose closed range [b*B, b*B+B] holds lattice index i.
+        let owners = |i: usize, n: usize| {
+            let b = (i / BLOCK).min(n - 1);
+            let below = (i % BLOCK == 0 && i > 0).then(|| i / BLOCK - 1);
+            [Some(b), below]
+        };
+        for i in 0..res[0] {
+            for j in 0..res[1] {
+                for k in 0..res[2] {
+                    if grid.links[grid.geometry.flat(i, j, k)] < 0 {
+                        continue;
+                    }
+                    for bi in owners(i, blocks[0]).into_iter().flatten() {
+                        for bj in owners(j, blocks[1]).into_iter().flatten() {
+                            for bk in owners(k, blocks[2]).into_iter().flatten() {
+                                occupied[(bi * blocks[1] + bj) * blocks[2] + bk] = true;
+                            }
+                        }
+                    }
                 }
-                sigma += w[c] * grid.density_cpu[r as usize];
-                wsum += w[c];
             }
         }
+        Self { grid, blocks, occupied }
+    }
+
+    /// Depth of every ray (None = miss), in parallel.
+    pub fn depths(&self, rays: &[Ray], params: &MarchParams) -> Vec<Option<f32>> {
+        rays.par_iter().map(|r| self.depth(r, params)).collect()
+    }
+
+    fn depth(&self, ray: &Ray, p: &MarchParams) -> Option<f32> {
+        let grid = self.grid;
+        let geo = &grid.geometry;
+        let (t0, t1) = geo.intersect(ray.origin, ray.dir)?;
+        let step = ray_step(grid, ray, p);
+        // The ray in lattice coordinates: g(t) = a + t * d.
+        let a = geo.world_to_grid(ray.origin);
+        let d = ray.dir / geo.voxel_size();
+        let mut optical = 0.0f32;
+        let mut k = 0usize;
+        loop {
+            let t = t0 + (k as f32 + 0.5) * step;
+            if t >= t1 {
+                return None;
+            }
+            let g = a + t * d;
+            let base: [usize; 3] = std::array::from_fn(|ax| {
+                let hi = (geo.res[ax] - 1) as f32;
+                (g[ax].clamp(0.0, hi).floor() as usize).min(geo.res[ax].saturating_sub(2))
+            });
+            let b = base.map(|v| v / BLOCK);
+            if !self.occupied[(b[0] * self.blocks[1] + b[1]) * self.blocks[2] + b[2]] {
+                // Jump to the first sample at or after the ray's exit from this block.
+                let mut exit = f32::INFINITY;
+                for ax in 0..3 {
+                    let bound = if d[ax] > 0.0 {
+                        ((b[ax] + 1) * BLOCK) as f32
+                    } else if d[ax] < 0.0 {
+                        (b[ax] * BLOCK) as f32
+                    } else {
+                        continue;
+                    };
+                    exit = exit.min((bound - a[ax]) / d[ax]);
+                }
+                let next = ((exit - t0) / step - 0.5 - 1e-3).ceil();
+                k = if next.is_finite() && next > k as f32 { next as usize } else { k + 1 };
+                continue;
+            }
+            let c = corners(grid, ray.origin + t * ray.dir);
+            if c.first_active >= 0 && c.sigma > p.sigma_threshold {
+                let before = optical;
+                optical += c.sigma * step;
+                if optical >= p.depth_threshold {
+                    return Some(t - 0.5 * step + (p.depth_threshold - before) / c.sigma);
+                }
+            }
+            k += 1;
+        }
+    }
+}
+
+fn march_ray(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> RaySamples {
+    let mut out = RaySamples { rows: Vec::new(), weights: Vec::new(), colour_weights: Vec::new(), t: Vec::new(), delta: Vec::new(), depth: None };
+    let Some((t0, t1)) = grid.geometry.intersect(ray.origin, ray.dir) else { return out };
+    let step = ray_step(grid, ray, p);
+    let log_stop = p.stop_threshold.ln();
+    let mut optical = 0.0f32; // sum of sigma * delta so far
+    // Sample k sits at t0 + (k + 0.5) step (computed, not accumulated, so
+    // DepthMarcher's skipping lands on the very same positions).
+    for k in 0.. {
+        let t = t0 + (k as f32 + 0.5) * step;
+        if t >= t1 {
+            break;
+        }
+        let Corners { rows, w, first_active, sigma, wsum } = corners(grid, ray.origin + t * ray.dir);
         if first_active >= 0 && sigma > p.sigma_threshold {
             for c in 0..8 {
                 if rows[c] >= 0 {
@@ -136,7 +255,6 @@ fn march_ray(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> RaySamples {
                 break;
             }
         }
-        t += step;
     }
     out
 }
@@ -176,9 +294,9 @@ pub fn generate_samples(grid: &RadianceGrid, rays: &[Ray], params: &MarchParams)
 }
 
 /// Only the equation-4 depth of every ray (None = miss): plain Rust, no
-/// tensors, for R³ and anything else that needs geometry but not colour.
+/// tensors. Many views: build one `DepthMarcher` and reuse it.
 pub fn threshold_depths(grid: &RadianceGrid, rays: &[Ray], params: &MarchParams) -> Vec<Option<f32>> {
-    rays.par_iter().map(|r| march_ray(grid, r, params).depth).collect()
+    DepthMarcher::new(grid).depths(rays, params)
 }
 
 /// A sample batch uploaded to a device, ready for `composite`.

@@ -61,6 +61,8 @@ fn homogeneous_slab_matches_beer_lambert() {
         let want_t = t0 + std::f32::consts::LN_2 / sigma;
         assert!((tdepth[r].unwrap() - want_t).abs() < 1e-4, "{:?} vs {want_t}", tdepth[r]);
     }
+    // The depth-only march (R³'s) gives the same answer.
+    assert_eq!(render::threshold_depths(&grid, &rays, &params(0.5)), tdepth);
 }
 
 #[test]
@@ -157,4 +159,22 @@ fn autodiff_gradients_match_finite_differences() {
         checked += 1;
     }
     assert_eq!(checked, 16);
+}
+
+/// R³'s depth-only march (with empty-block skipping) gives exactly the
+/// renderer's equation-4 depth on a sparse grid, hits and misses alike.
+#[test]
+fn depth_march_with_block_skipping_equals_the_renderer() {
+    let grid = refnpr::bench::sphere_grid(64, &common::device());
+    let cam = refnpr::camera::Camera::new(
+        refnpr::camera::Intrinsics::from_fov_x(40, 40, 0.9),
+        refnpr::camera::look_at(Vec3::new(2.2, 1.0, 0.8), Vec3::ZERO, Vec3::Z),
+    );
+    let rays = cam.rays(None);
+    let p = render::MarchParams::default();
+    let (_, _, tdepth, _) = render::render_rays(&grid, &rays, &p, [1.0; 3], 4096);
+    let fast = render::threshold_depths(&grid, &rays, &p);
+    let hits = tdepth.iter().filter(|d| d.is_some()).count();
+    assert!(hits > 200 && hits < rays.len(), "the sphere covers part of the view: {hits}");
+    assert_eq!(fast, tdepth);
 }

@@ -109,6 +109,9 @@ enum Command {
         /// Search only the point's own voxel (not its 26 neighbours).
         #[arg(long)]
         no_neighbours: bool,
+        /// Use exactly --dict-res, even when voxels get smaller than the reference's pixel footprint.
+        #[arg(long)]
+        no_footprint_cap: bool,
         /// Overlay PNGs for the first N training views.
         #[arg(long, default_value_t = 8)]
         overlays: usize,
@@ -257,7 +260,7 @@ fn run() -> Result<()> {
             println!("paint over it and save the result as {}", out.join("style.png").display());
         }
         Command::Register {
-            photo, reference, out, data: data_dir, dict_res, per_voxel, cos_threshold, max_dist_voxels, erode, no_neighbours, overlays,
+            photo, reference, out, data: data_dir, dict_res, per_voxel, cos_threshold, max_dist_voxels, erode, no_neighbours, no_footprint_cap, overlays,
         } => {
             let (ck, dataset) = load_run(&photo, data_dir)?;
             let case = refnpr::reference::ReferenceCase::load(&reference)?;
@@ -268,6 +271,7 @@ fn run() -> Result<()> {
             if let Some(v) = max_dist_voxels { params.max_dist_voxels = v; }
             if let Some(v) = erode { params.erode_reference = v; }
             params.neighbours = !no_neighbours;
+            params.cap_to_footprint = !no_footprint_cap;
             let r = refnpr::registration::run_register(&ck, &dataset, &case, &params, &out, overlays)?;
             println!(
                 "registered {} pixels ({:.1}% of surface pixels) over {} views; depth {:.2}s, dictionary {:.3}s, registration {:.3}s",
