@@ -48,7 +48,8 @@ struct Payload {
 pub struct Checkpoint {
     pub meta: CheckpointMeta,
     pub grid: RadianceGrid,
-    /// RMSprop running averages [rows, 1] and [rows, 3B] (zeros if absent).
+    /// RMSprop running averages [rows, 1] and [rows, 3B] (zeros if absent;
+    /// empty, 0 rows, when loaded without optimiser state).
     pub opt_density: Tensor<2>,
     pub opt_sh: Tensor<2>,
 }
@@ -80,15 +81,30 @@ pub fn save(path: &Path, meta: &CheckpointMeta, grid: &RadianceGrid, opt_density
 }
 
 pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
+    load_with(path, device, true)
+}
+
+/// Loads a checkpoint; without `optimiser_state` the RMSprop averages are
+/// dropped (empty tensors), which is all rendering and R³ need and saves
+/// a grid-sized block of memory.
+pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<Checkpoint> {
+    use std::io::Read;
     let path = resolve(path);
     if !path.exists() {
         bail!("no checkpoint at {} (train one with `refnpr train`)", path.display());
     }
-    let bytes = std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
-    if bytes.len() < 8 || &bytes[..8] != MAGIC {
+    // Streamed: the file's bytes are never held next to the decoded arrays.
+    let file = std::fs::File::open(&path).with_context(|| format!("cannot read {}", path.display()))?;
+    let mut reader = std::io::BufReader::new(file);
+    let mut magic = [0u8; 8];
+    if reader.read_exact(&mut magic).is_err() || &magic != MAGIC {
         bail!("{} is not a refnpr checkpoint", path.display());
     }
-    let p: Payload = bincode::deserialize(&bytes[8..]).with_context(|| format!("{} is corrupt", path.display()))?;
+    let mut p: Payload = bincode::deserialize_from(&mut reader).with_context(|| format!("{} is corrupt", path.display()))?;
+    if !optimiser_state {
+        p.opt_density = Vec::new();
+        p.opt_sh = Vec::new();
+    }
     let meta: CheckpointMeta =
         serde_json::from_str(&p.meta_json).with_context(|| format!("{}: corrupt metadata", path.display()))?;
     let n = p.coords.len();
@@ -98,14 +114,21 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
         bail!("{}: grid arrays have inconsistent sizes", path.display());
     }
     let grid = RadianceGrid::from_rows(meta.geometry, meta.sh_degree, p.coords, p.density, p.sh, device);
-    let opt_density = if p.opt_density.len() == n { floats(p.opt_density, [n, 1], device) } else { Tensor::zeros([n, 1], device) };
-    let opt_sh = if p.opt_sh.len() == n * cols { floats(p.opt_sh, [n, cols], device) } else { Tensor::zeros([n, cols], device) };
+    let (opt_density, opt_sh) = if !optimiser_state {
+        (Tensor::zeros([0, 1], device), Tensor::zeros([0, cols], device))
+    } else {
+        (
+            if p.opt_density.len() == n { floats(p.opt_density, [n, 1], device) } else { Tensor::zeros([n, 1], device) },
+            if p.opt_sh.len() == n * cols { floats(p.opt_sh, [n, cols], device) } else { Tensor::zeros([n, cols], device) },
+        )
+    };
     Ok(Checkpoint { meta, grid, opt_density, opt_sh })
 }
 
-/// A checkpoint and the dataset it was trained on (or `data`, when given).
+/// A checkpoint (without optimiser state: for rendering and R³) and the
+/// dataset it was trained on (or `data`, when given).
 pub fn load_run(path: &Path, data: Option<&Path>, device: &Device) -> Result<(Checkpoint, crate::data::Dataset)> {
-    let ck = load(path, device)?;
+    let ck = load_with(path, device, false)?;
     let dir = data.map(Path::to_path_buf).unwrap_or_else(|| ck.meta.data_dir.clone());
     let dataset = crate::data::load(&dir, &ck.meta.config.data)
         .with_context(|| format!("loading the run's dataset {} (pass --data to use another)", dir.display()))?;
