@@ -88,6 +88,7 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
 /// dropped (empty tensors), which is all rendering and R³ need and saves
 /// a grid-sized block of memory.
 pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<Checkpoint> {
+    use bincode::Options;
     use std::io::Read;
     let path = resolve(path);
     if !path.exists() {
@@ -100,7 +101,11 @@ pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<
     if reader.read_exact(&mut magic).is_err() || &magic != MAGIC {
         bail!("{} is not a refnpr checkpoint", path.display());
     }
-    let mut p: Payload = bincode::deserialize_from(&mut reader).with_context(|| format!("{} is corrupt", path.display()))?;
+    // The same encoding as `bincode::serialize`, with the file's size as a
+    // limit: a corrupt length field is an error, not a huge allocation.
+    let limit = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
+    let options = bincode::DefaultOptions::new().with_fixint_encoding().allow_trailing_bytes().with_limit(limit);
+    let mut p: Payload = options.deserialize_from(&mut reader).with_context(|| format!("{} is corrupt", path.display()))?;
     if !optimiser_state {
         p.opt_density = Vec::new();
         p.opt_sh = Vec::new();
