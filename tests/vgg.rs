@@ -123,8 +123,9 @@ fn input_gradient_matches_finite_differences() {
     let grad = to_vec(x.grad(&grads).expect("gradient reaches the image"));
     let base = to_vec(image.clone());
     let eps = 1e-3f32;
-    let mut checked = 0;
-    for &idx in &[5usize, 100, 517, 1024 + 333, 2048 + 700, 3000] {
+    let pixels = [5usize, 100, 517, 1024 + 333, 2048 + 700, 3000];
+    let mut fds = Vec::new();
+    for &idx in &pixels {
         let mut plus = base.clone();
         plus[idx] += eps;
         let mut minus = base.clone();
@@ -144,12 +145,24 @@ fn input_gradient_matches_finite_differences() {
         let f_plus = map_of(floats(plus, [1, 3, 32, 32], &device));
         let f_minus = map_of(floats(minus, [1, 3, 32, 32], &device));
         let fd = to_vec(((f_plus - f_minus) * probe.clone() * window).sum())[0] / (2.0 * eps);
-        let scale = grad[idx].abs().max(fd.abs()).max(1.0);
         println!("pixel {idx}: autodiff {:.4} finite difference {fd:.4}", grad[idx]);
-        assert!((grad[idx] - fd).abs() / scale < common::tol(2e-2), "pixel {idx}: {} vs {fd}", grad[idx]);
-        checked += 1;
+        fds.push(fd);
     }
-    assert_eq!(checked, 6);
+    // Judged as a vector (relative L2 error <= 1 %, the FD noise of ndarray's
+    // non-reproducible f32 reductions is ~0.3 %), and per pixel against the
+    // larger of its own size and a tenth of the largest (<= 5 %), so a small
+    // gradient's FD noise does not count as an error but a wrong one does.
+    let ad: Vec<f32> = pixels.iter().map(|&i| grad[i]).collect();
+    let norm = |v: &[f32]| v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    let diff: Vec<f32> = ad.iter().zip(&fds).map(|(a, f)| a - f).collect();
+    let rel = norm(&diff) / norm(&ad);
+    println!("relative L2 error over the pixels: {rel:.2e}");
+    assert!(rel < common::tol(1e-2), "relative error {rel:.3e}");
+    let largest = ad.iter().fold(0.0f32, |m, a| m.max(a.abs()));
+    for (k, &idx) in pixels.iter().enumerate() {
+        let scale = ad[k].abs().max(fds[k].abs()).max(0.1 * largest);
+        assert!(diff[k].abs() / scale < common::tol(5e-2), "pixel {idx}: {} vs {}", ad[k], fds[k]);
+    }
     assert!(grad.iter().any(|g| g.abs() > 1e-3), "gradient is not all zero");
 }
 
