@@ -134,17 +134,6 @@ pub struct VggBenchResult {
     pub repeats: usize,
 }
 
-/// Resident memory now (VmRSS) in MB.
-fn rss_mb() -> Option<f64> {
-    proc_status_mb("VmRSS:")
-}
-
-fn proc_status_mb(key: &str) -> Option<f64> {
-    let s = std::fs::read_to_string("/proc/self/status").ok()?;
-    let l = s.lines().find(|l| l.starts_with(key))?;
-    Some(l.split_whitespace().nth(1)?.parse::<f64>().ok()? / 1024.0)
-}
-
 /// Resets the process's peak-RSS counter (Linux >= 4.0), so VmHWM measures what follows.
 fn reset_peak_rss() -> bool {
     std::fs::write("/proc/self/clear_refs", "5").is_ok()
@@ -177,7 +166,7 @@ pub fn vgg_timing(backend: BackendKind, width: usize, height: usize, warmup: usi
         }
         let f_s = t.elapsed().as_secs_f64();
         drop(maps);
-        let before = rss_mb();
+        let before = crate::train::proc_status_mb("VmRSS:");
         let measured = rep + 1 == warmup + repeats && reset_peak_rss();
         let t = Instant::now();
         let x = image.clone().require_grad();
@@ -187,7 +176,7 @@ pub fn vgg_timing(backend: BackendKind, width: usize, height: usize, warmup: usi
         let _ = to_vec(x.grad(&grads).expect("image gradient"));
         let fb_s = t.elapsed().as_secs_f64();
         if measured {
-            peak = proc_status_mb("VmHWM:").zip(before).map(|(p, b)| p - b);
+            peak = crate::train::peak_rss_mb().zip(before).map(|(p, b)| p - b);
         }
         if rep >= warmup {
             // Warm-up repetitions compile kernels and fill allocators.

@@ -10,7 +10,6 @@ use crate::tensor_util::{floats, to_vec};
 use anyhow::{Context, Result, bail};
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
@@ -68,16 +67,7 @@ pub fn save(path: &Path, meta: &CheckpointMeta, grid: &RadianceGrid, opt_density
         opt_density: to_vec(opt_density.clone()),
         opt_sh: to_vec(opt_sh.clone()),
     };
-    let tmp = path.with_extension("bin.tmp");
-    {
-        let file = std::fs::File::create(&tmp).with_context(|| format!("cannot create {}", tmp.display()))?;
-        let mut w = std::io::BufWriter::new(file);
-        w.write_all(MAGIC)?;
-        bincode::serialize_into(&mut w, &payload).context("serialising the checkpoint")?;
-        w.flush()?;
-        w.get_ref().sync_all().ok();
-    }
-    std::fs::rename(&tmp, path).with_context(|| format!("cannot move {} to {}", tmp.display(), path.display()))
+    crate::binfile::save(path, MAGIC, &payload)
 }
 
 pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
@@ -88,24 +78,11 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
 /// dropped (empty tensors), which is all rendering and R³ need and saves
 /// a grid-sized block of memory.
 pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<Checkpoint> {
-    use bincode::Options;
-    use std::io::Read;
     let path = resolve(path);
     if !path.exists() {
         bail!("no checkpoint at {} (train one with `refnpr train`)", path.display());
     }
-    // Streamed: the file's bytes are never held next to the decoded arrays.
-    let file = std::fs::File::open(&path).with_context(|| format!("cannot read {}", path.display()))?;
-    let mut reader = std::io::BufReader::new(file);
-    let mut magic = [0u8; 8];
-    if reader.read_exact(&mut magic).is_err() || &magic != MAGIC {
-        bail!("{} is not a refnpr checkpoint", path.display());
-    }
-    // The same encoding as `bincode::serialize`, with the file's size as a
-    // limit: a corrupt length field is an error, not a huge allocation.
-    let limit = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
-    let options = bincode::DefaultOptions::new().with_fixint_encoding().allow_trailing_bytes().with_limit(limit);
-    let mut p: Payload = options.deserialize_from(&mut reader).with_context(|| format!("{} is corrupt", path.display()))?;
+    let mut p: Payload = crate::binfile::load(&path, MAGIC, "a refnpr checkpoint")?;
     if !optimiser_state {
         p.opt_density = Vec::new();
         p.opt_sh = Vec::new();

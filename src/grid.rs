@@ -63,18 +63,25 @@ impl GridGeometry {
         [i, j, k]
     }
 
+    /// The lowest of the 8 lattice points `trilinear` uses for `g` (per axis:
+    /// `g` clamped into the lattice, floored, at most `res - 2`).
+    #[inline]
+    pub fn trilinear_base(&self, g: Vec3) -> [usize; 3] {
+        std::array::from_fn(|a| {
+            let c = g[a].clamp(0.0, (self.res[a] - 1) as f32);
+            (c.floor() as usize).min(self.res[a].saturating_sub(2))
+        })
+    }
+
     /// The 8 lattice points around `g` and their trilinear weights (bit 0 =
     /// +z, bit 1 = +y, bit 2 = +x). `g` is clamped into the lattice.
     #[inline]
     pub fn trilinear(&self, g: Vec3) -> ([usize; 8], [f32; 8]) {
-        let mut base = [0usize; 3];
+        let base = self.trilinear_base(g);
         let mut frac = [0f32; 3];
         for a in 0..3 {
-            let hi = (self.res[a] - 1) as f32;
-            let c = g[a].clamp(0.0, hi);
-            let b = (c.floor() as usize).min(self.res[a].saturating_sub(2));
-            base[a] = b;
-            frac[a] = if self.res[a] > 1 { c - b as f32 } else { 0.0 };
+            let c = g[a].clamp(0.0, (self.res[a] - 1) as f32);
+            frac[a] = if self.res[a] > 1 { c - base[a] as f32 } else { 0.0 };
         }
         let mut idx = [0usize; 8];
         let mut w = [0f32; 8];

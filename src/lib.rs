@@ -8,6 +8,7 @@
 
 pub mod backend;
 pub mod bench;
+pub mod binfile;
 pub mod camera;
 pub mod checkpoint;
 pub mod config;

