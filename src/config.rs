@@ -228,7 +228,7 @@ impl TrainConfig {
 }
 
 /// Overlays `user` onto `base` table by table.
-fn merge(base: &mut toml::Value, user: toml::Value) {
+pub(crate) fn merge(base: &mut toml::Value, user: toml::Value) {
     match (base, user) {
         (toml::Value::Table(b), toml::Value::Table(u)) => {
             for (k, v) in u {

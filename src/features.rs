@@ -9,19 +9,16 @@ use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 use crate::tensor_util::to_vec;
 use crate::vgg::{FeatureMaps, VggLayer};
 
-/// Channel-wise L2 normalisation of `[N, C, h, w]` maps (unit vectors per position).
-pub fn normalise_channels(map: Tensor<4>) -> Tensor<4> {
-    let norm = map.clone().powf_scalar(2.0).sum_dim(1).sqrt().add_scalar(1e-8);
-    map / norm
+/// Rows scaled to unit length (a zero row stays zero).
+pub fn normalise_rows(x: Tensor<2>) -> Tensor<2> {
+    let norm = x.clone().powf_scalar(2.0).sum_dim(1).sqrt().add_scalar(1e-8);
+    x / norm
 }
 
-/// The descriptor of one feature block (e.g. relu3_1..relu3_3) for batch item
-/// `item`: the block's maps resized (nearest) to `size = [h, w]`, concatenated
-/// along channels and L2-normalised per position, as `[h*w, sum C]` in
-/// row-major position order. Two rows' dot product is the block's cosine
-/// similarity (the released code normalises each concatenated block, not
-/// each layer).
-pub fn block_descriptors(maps: &FeatureMaps, block: &[VggLayer], item: usize, size: [usize; 2]) -> Tensor<2> {
+/// One feature block (e.g. relu3_1..relu3_3) of batch item `item` as a
+/// matrix: the block's maps resized (nearest) to `size = [h, w]` and
+/// concatenated along channels, `[h*w, sum C]` in row-major position order.
+pub fn block_matrix(maps: &FeatureMaps, block: &[VggLayer], item: usize, size: [usize; 2]) -> Tensor<2> {
     let parts: Vec<Tensor<4>> = block
         .iter()
         .map(|&layer| {
@@ -30,9 +27,16 @@ pub fn block_descriptors(maps: &FeatureMaps, block: &[VggLayer], item: usize, si
             if [h, w] == size { map } else { interpolate(map, InterpolateOptions::new(InterpolateMode::Nearest).with_output_size(size)) }
         })
         .collect();
-    let cat = normalise_channels(Tensor::cat(parts, 1));
+    let cat = Tensor::cat(parts, 1);
     let [_, c, h, w] = cat.dims();
     cat.reshape([c, h * w]).transpose()
+}
+
+/// The descriptor of one feature block: `block_matrix` with every row
+/// L2-normalised. Two rows' dot product is the block's cosine similarity
+/// (the released code normalises each concatenated block, not each layer).
+pub fn block_descriptors(maps: &FeatureMaps, block: &[VggLayer], item: usize, size: [usize; 2]) -> Tensor<2> {
+    normalise_rows(block_matrix(maps, block, item, size))
 }
 
 /// Several blocks' descriptors side by side (`[h*w, sum C]`): a dot product

@@ -24,6 +24,7 @@ pub mod register;
 pub mod registration;
 pub mod render_path;
 pub mod sh;
+pub mod stylize;
 pub mod tensor_util;
 pub mod train;
 pub mod vgg;

@@ -116,6 +116,38 @@ enum Command {
         #[arg(long, default_value_t = 8)]
         overlays: usize,
     },
+    /// Stylizes a photoreal run after a reference case (Ref-NPR), or after a style image (ARF).
+    Stylize {
+        /// Photoreal run folder (or checkpoint file).
+        #[arg(long)]
+        photo: PathBuf,
+        /// Reference case folder (reference.toml or the authors' data_config.json).
+        #[arg(long)]
+        reference: PathBuf,
+        /// Output run folder: checkpoint.bin (renders like any run), stylize.json, test/ renders.
+        #[arg(long)]
+        out: PathBuf,
+        /// TOML config; fields it leaves out take the defaults of configs/stylize.toml.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// refnpr | arf
+        #[arg(long, default_value = "refnpr")]
+        method: refnpr::stylize::Method,
+        /// ARF: a style image instead of the case's first reference.
+        #[arg(long)]
+        style: Option<PathBuf>,
+        /// Override schedule.image_epochs.
+        #[arg(long)]
+        epochs: Option<usize>,
+        #[arg(long)]
+        backend: Option<BackendKind>,
+        /// Dataset folder (default: the one the photoreal run was trained on).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Skip rendering the test views of the result.
+        #[arg(long)]
+        no_render: bool,
+    },
     /// Writes the built-in procedural scene (Blender layout, with depth, ids and a stylized twin).
     Scene {
         #[arg(long)]
@@ -278,6 +310,22 @@ fn run() -> Result<()> {
                 r.registered_pixels, 100.0 * r.fraction_overall, r.fraction_per_view.len(), r.depth_seconds, r.dictionary_seconds, r.register_seconds
             );
             println!("wrote {}/registration.bin, register.json, overlays/", out.display());
+        }
+        Command::Stylize { photo, reference, out, config, method, style, epochs, backend, data: data_dir, no_render } => {
+            let mut config = match &config {
+                Some(p) => refnpr::stylize::config::StylizeConfig::from_file(p)?,
+                None => Default::default(),
+            };
+            if let Some(e) = epochs {
+                config.schedule.image_epochs = e;
+            }
+            let job = refnpr::stylize::StylizeJob {
+                photo, case: reference, out: out.clone(), config, method, backend: backend_or_env(backend)?, style, data: data_dir, render_test: !no_render,
+            };
+            let r = refnpr::stylize::run_stylize(&job)?;
+            let phases: Vec<String> = r.seconds.iter().map(|(k, v)| format!("{k} {v:.1}s")).collect();
+            println!("stylized ({}) in {:.1} s: {}", r.method, r.total_seconds, phases.join(", "));
+            println!("wrote {}/checkpoint.bin, stylize.json{}", out.display(), if job.render_test { ", test/" } else { "" });
         }
         Command::Scene { out, seed, size } => {
             let opts = procedural::SceneOptions { seed, size, ..Default::default() };

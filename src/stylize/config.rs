@@ -1,0 +1,205 @@
+//! `refnpr stylize` settings: TOML with a default for every field (the
+//! defaults are `configs/stylize.toml`); unknown keys and out-of-range values
+//! are errors naming the file.
+
+use anyhow::{Context, Result, ensure};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+use crate::register::RegisterParams;
+
+/// Phases and optimiser.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ScheduleConfig {
+    /// View-independent colour refit to the photos before stylizing (epochs over all training rays).
+    pub ray_epochs: f32,
+    /// Rays per refit step.
+    pub ray_batch: usize,
+    /// RMSprop learning rate of the refit.
+    pub lr_refit: f32,
+    /// Stylization epochs; one step = one whole training view.
+    pub image_epochs: usize,
+    /// Fraction of the image epochs (the last ones) run as the smooth content update.
+    pub smooth_fraction: f32,
+    /// SH learning rate of the image epochs, decaying exponentially to `lr_final`.
+    pub lr: f32,
+    pub lr_final: f32,
+    pub rmsprop_beta: f32,
+    pub eps: f32,
+}
+
+impl Default for ScheduleConfig {
+    fn default() -> Self {
+        Self { ray_epochs: 2.0, ray_batch: 8192, lr_refit: 1e-2, image_epochs: 10, smooth_fraction: 0.25, lr: 0.1, lr_final: 0.01, rmsprop_beta: 0.95, eps: 1e-8 }
+    }
+}
+
+/// Loss weights (λ) and their settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LossConfig {
+    /// λ_r: reference loss on R³ pseudo-rays.
+    pub reference: f32,
+    /// Pseudo-rays per step drawn from the reference view(s) (all of them when fewer).
+    pub reference_rays: usize,
+    /// Pseudo-rays per step drawn from the registered pixels of the training views.
+    pub registered_rays: usize,
+    /// λ_f: TCM feature loss.
+    pub feature: f32,
+    /// λ': content term of the feature loss (MSE to the content render's features).
+    pub content: f32,
+    /// λ_c: coarse colour matching (relu5, patch means).
+    pub colour: f32,
+    /// Colour matches whose cosine distance exceeds this are ignored (released code 0.6, paper 0.4).
+    pub colour_max_distance: f32,
+    /// Content patches brighter than this in every channel (background) get no colour loss.
+    pub colour_white: f32,
+    /// Feature loss weight during the smooth content update (λ' is 0 there).
+    pub smooth_feature: f32,
+    /// Image total variation on the rendered view.
+    pub image_tv: f32,
+    /// Total variation on the SH grid, on a random `tv_fraction` of the voxels per step.
+    pub tv_sh: f32,
+    pub tv_fraction: f32,
+}
+
+impl Default for LossConfig {
+    fn default() -> Self {
+        Self {
+            reference: 1.0,
+            reference_rays: 50_000,
+            registered_rays: 50_000,
+            feature: 1.0,
+            content: 5e-3,
+            colour: 5.0,
+            colour_max_distance: 0.6,
+            colour_white: 0.99,
+            smooth_feature: 0.2,
+            image_tv: 1.0,
+            tv_sh: 1e-3,
+            tv_fraction: 0.1,
+        }
+    }
+}
+
+/// Switches for the paper's ablations.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AblationConfig {
+    /// L_ref on the R³ pseudo-rays.
+    pub use_reference_loss: bool,
+    /// Only the reference view's own pixels as pseudo-rays (no registered rays).
+    pub reference_rays_only: bool,
+    /// L_feat (TCM).
+    pub use_feature_loss: bool,
+    /// L_color.
+    pub use_colour_loss: bool,
+    /// The smooth content update of the last epochs.
+    pub smooth_update: bool,
+}
+
+impl Default for AblationConfig {
+    fn default() -> Self {
+        Self { use_reference_loss: true, reference_rays_only: false, use_feature_loss: true, use_colour_loss: true, smooth_update: true }
+    }
+}
+
+/// The ARF baseline's losses.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ArfConfig {
+    /// Nearest-neighbour feature matching (relu3_x block) weight.
+    pub nnfm: f32,
+    /// Content MSE (relu3_x block) weight.
+    pub content: f32,
+}
+
+impl Default for ArfConfig {
+    fn default() -> Self {
+        Self { nnfm: 1.0, content: 5e-3 }
+    }
+}
+
+/// Everything `refnpr stylize` needs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StylizeConfig {
+    pub seed: u64,
+    pub schedule: ScheduleConfig,
+    pub loss: LossConfig,
+    pub ablation: AblationConfig,
+    pub arf: ArfConfig,
+    pub register: RegisterParams,
+    /// Samples whose compositing weight is below this are dropped from the cached sample lists.
+    pub min_sample_weight: f32,
+    /// Memory for cached per-view sample lists (MB); views beyond it are re-marched each step.
+    pub sample_cache_mb: usize,
+    /// Rays per chunk in rendering and the deferred re-render.
+    pub render_chunk: usize,
+    /// Query rows per chunk in the nearest-neighbour searches.
+    pub search_chunk: usize,
+}
+
+impl Default for StylizeConfig {
+    fn default() -> Self {
+        Self {
+            seed: 20200823,
+            schedule: ScheduleConfig::default(),
+            loss: LossConfig::default(),
+            ablation: AblationConfig::default(),
+            arf: ArfConfig::default(),
+            register: RegisterParams::default(),
+            min_sample_weight: 1e-5,
+            sample_cache_mb: 2048,
+            render_chunk: 16384,
+            search_chunk: 1024,
+        }
+    }
+}
+
+impl StylizeConfig {
+    /// Parses TOML over the defaults and validates.
+    pub fn from_toml_str(text: &str, source: &str) -> Result<Self> {
+        let mut merged = toml::Value::try_from(Self::default()).context("serialising the default config")?;
+        let user: toml::Value = toml::from_str(text).with_context(|| format!("{source} is not valid TOML"))?;
+        crate::config::merge(&mut merged, user);
+        let cfg: Self = merged.try_into().with_context(|| format!("{source}: invalid stylize config"))?;
+        cfg.validate().with_context(|| format!("{source}: invalid stylize config"))?;
+        Ok(cfg)
+    }
+
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read config {}", path.display()))?;
+        Self::from_toml_str(&text, &path.display().to_string())
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        let s = &self.schedule;
+        let l = &self.loss;
+        ensure!(s.ray_epochs >= 0.0 && s.ray_epochs.is_finite(), "schedule.ray_epochs must be >= 0");
+        ensure!(s.ray_batch > 0 && self.render_chunk > 0 && self.search_chunk > 0, "schedule.ray_batch, render_chunk and search_chunk must be positive");
+        ensure!((0.0..=1.0).contains(&s.smooth_fraction), "schedule.smooth_fraction must be in [0, 1]");
+        for (name, v) in [("schedule.lr", s.lr), ("schedule.lr_final", s.lr_final), ("schedule.lr_refit", s.lr_refit), ("schedule.eps", s.eps)] {
+            ensure!(v.is_finite() && v > 0.0, "{name} must be a positive number, got {v}");
+        }
+        ensure!((0.0..1.0).contains(&s.rmsprop_beta), "schedule.rmsprop_beta must be in [0, 1)");
+        for (name, v) in [
+            ("loss.reference", l.reference),
+            ("loss.feature", l.feature),
+            ("loss.content", l.content),
+            ("loss.colour", l.colour),
+            ("loss.smooth_feature", l.smooth_feature),
+            ("loss.image_tv", l.image_tv),
+            ("loss.tv_sh", l.tv_sh),
+            ("arf.nnfm", self.arf.nnfm),
+            ("arf.content", self.arf.content),
+        ] {
+            ensure!(v.is_finite() && v >= 0.0, "{name} must be >= 0, got {v}");
+        }
+        ensure!((0.0..=2.0).contains(&l.colour_max_distance), "loss.colour_max_distance is a cosine distance, in [0, 2]");
+        ensure!(l.tv_fraction > 0.0 && l.tv_fraction <= 1.0, "loss.tv_fraction must be in (0, 1]");
+        ensure!((0.0..1.0).contains(&self.min_sample_weight), "min_sample_weight must be in [0, 1)");
+        self.register.validate()
+    }
+}

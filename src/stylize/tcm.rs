@@ -1,0 +1,152 @@
+//! TCM, the template-based correspondence (paper eqs. 6-7), and the colour
+//! matching of eq. 9. The reference side (content render I_R and style S_R
+//! of every reference) becomes a `Template`: per feature block, the
+//! normalised content descriptors (search keys) and the style features at
+//! the same positions (the guidance). A training view's content render is
+//! matched once against it (exact cosine nearest neighbour, chunked) and the
+//! indices are kept: the guidance F_G is then a row gather per step.
+//! Several references are searched as one union (their keys concatenated).
+
+use anyhow::Result;
+use burn::tensor::{Device, Int, Tensor};
+
+use crate::features::{block_descriptors, block_matrix, nearest_by_dot};
+use crate::stylize::losses::patch_means;
+use crate::tensor_util::{floats, indices, to_vec};
+use crate::vgg::{FeatureMaps, Vgg16, VggLayer, image_tensor};
+
+pub const RELU3: [VggLayer; 3] = [VggLayer::Relu3_1, VggLayer::Relu3_2, VggLayer::Relu3_3];
+pub const RELU4: [VggLayer; 3] = [VggLayer::Relu4_1, VggLayer::Relu4_2, VggLayer::Relu4_3];
+pub const RELU5: [VggLayer; 3] = [VggLayer::Relu5_1, VggLayer::Relu5_2, VggLayer::Relu5_3];
+/// The feature loss's blocks (relu3_x: 768 channels at 1/4, relu4_x: 1536 at 1/8), summed.
+pub const FEATURE_BLOCKS: [&[VggLayer]; 2] = [&RELU3, &RELU4];
+/// Pixels per relu5 position: the colour loss's patch size.
+pub const COLOUR_PATCH: usize = 16;
+
+/// An RGB image (interleaved, row-major, [0,1]) and its size.
+#[derive(Debug, Clone)]
+pub struct Image {
+    pub width: usize,
+    pub height: usize,
+    pub rgb: Vec<f32>,
+}
+
+impl Image {
+    pub fn tensor(&self, device: &Device) -> Tensor<4> {
+        image_tensor(&self.rgb, self.width, self.height, device)
+    }
+}
+
+/// The grid of a block: that of its first layer.
+pub fn block_size(block: &[VggLayer], height: usize, width: usize) -> [usize; 2] {
+    block[0].map_size(height, width)
+}
+
+/// Features of `image` for `blocks` (raw, `[positions, channels]` each) and,
+/// when `colour` is set, the normalised relu5 descriptors. No gradient.
+pub fn image_features(vgg: &Vgg16, image: &Image, device: &Device, blocks: &[&[VggLayer]], colour: bool) -> Result<(Vec<Tensor<2>>, Option<Tensor<2>>)> {
+    let mut layers: Vec<VggLayer> = blocks.iter().flat_map(|b| b.iter().copied()).collect();
+    if colour {
+        layers.extend(RELU5);
+    }
+    let maps = vgg.features(image.tensor(device), &layers)?;
+    let raw = blocks.iter().map(|b| block_matrix(&maps, b, 0, block_size(b, image.height, image.width)).inner()).collect();
+    let c = colour.then(|| block_descriptors(&maps, &RELU5, 0, block_size(&RELU5, image.height, image.width)).inner());
+    Ok((raw, c))
+}
+
+/// The features of a stylized render used by the losses (with gradient when `maps` carry one).
+pub fn render_blocks(maps: &FeatureMaps, blocks: &[&[VggLayer]], height: usize, width: usize) -> Vec<Tensor<2>> {
+    blocks.iter().map(|b| block_matrix(maps, b, 0, block_size(b, height, width))).collect()
+}
+
+/// The reference side of TCM.
+pub struct Template {
+    /// Per block: normalised content descriptors of every reference position.
+    pub keys: Vec<Tensor<2>>,
+    /// Per block: the style image's raw features at the same positions.
+    pub values: Vec<Tensor<2>>,
+    /// Normalised relu5 descriptors of the references' content renders.
+    pub colour_keys: Tensor<2>,
+    /// The style images' patch mean colours at the same positions.
+    pub colour_values: Tensor<2>,
+}
+
+/// A (content, style) pair of one reference view.
+pub struct ReferencePair {
+    pub content: Image,
+    pub style: Image,
+}
+
+impl Template {
+    pub fn build(vgg: &Vgg16, pairs: &[ReferencePair], device: &Device) -> Result<Self> {
+        let nb = FEATURE_BLOCKS.len();
+        let (mut keys, mut values) = (vec![Vec::new(); nb], vec![Vec::new(); nb]);
+        let (mut ckeys, mut cvalues) = (Vec::new(), Vec::new());
+        for p in pairs {
+            let (content, colour) = image_features(vgg, &p.content, device, &FEATURE_BLOCKS, true)?;
+            let (style, _) = image_features(vgg, &p.style, device, &FEATURE_BLOCKS, false)?;
+            for b in 0..nb {
+                keys[b].push(crate::features::normalise_rows(content[b].clone()));
+                values[b].push(style[b].clone());
+            }
+            ckeys.push(colour.expect("colour descriptors requested"));
+            cvalues.push(patch_means(p.style.tensor(device), COLOUR_PATCH));
+        }
+        Ok(Self {
+            keys: keys.into_iter().map(|k| Tensor::cat(k, 0)).collect(),
+            values: values.into_iter().map(|v| Tensor::cat(v, 0)).collect(),
+            colour_keys: Tensor::cat(ckeys, 0),
+            colour_values: Tensor::cat(cvalues, 0),
+        })
+    }
+
+    /// Eq. 7 for every position of each block: the index of the nearest
+    /// template position (cosine), from a view's raw content features.
+    pub fn matches(&self, content: &[Tensor<2>], chunk: usize) -> Vec<Tensor<1, Int>> {
+        content
+            .iter()
+            .zip(&self.keys)
+            .map(|(c, k)| {
+                let (idx, _) = nearest_by_dot(crate::features::normalise_rows(c.clone()), k.clone(), chunk);
+                indices(idx.into_iter().map(|i| i as i32).collect(), &k.device())
+            })
+            .collect()
+    }
+
+    /// Eq. 6: the guidance features of block `b` for matched indices.
+    pub fn guidance(&self, b: usize, matches: &Tensor<1, Int>) -> Tensor<2> {
+        self.values[b].clone().select(0, matches.clone())
+    }
+
+    /// Eq. 9's targets for a view: for each relu5 position, the matched
+    /// reference patch's style colour, and a mask that is 0 where the match's
+    /// cosine distance exceeds `max_distance` or the view's own content patch
+    /// is near white (> `white` in every channel: background).
+    pub fn colour_targets(&self, colour_descriptors: Tensor<2>, content: &Image, max_distance: f32, white: f32, chunk: usize) -> ColourTargets {
+        let device = colour_descriptors.device();
+        let (idx, sim) = nearest_by_dot(colour_descriptors, self.colour_keys.clone(), chunk);
+        let own = to_vec(patch_means(content.tensor(&device), COLOUR_PATCH));
+        let mask: Vec<f32> = sim
+            .iter()
+            .enumerate()
+            .map(|(i, &s)| {
+                let background = own[i * 3..i * 3 + 3].iter().all(|&v| v > white);
+                if 1.0 - s <= max_distance && !background { 1.0 } else { 0.0 }
+            })
+            .collect();
+        let n = mask.len();
+        let matched = mask.iter().filter(|&&m| m > 0.0).count();
+        let target = self.colour_values.clone().select(0, indices(idx.into_iter().map(|i| i as i32).collect(), &device));
+        ColourTargets { target, mask: floats(mask, [n, 1], &device), matched_fraction: matched as f32 / n.max(1) as f32 }
+    }
+}
+
+/// Colour-loss targets of one view.
+pub struct ColourTargets {
+    /// `[relu5 positions, 3]`
+    pub target: Tensor<2>,
+    /// `[relu5 positions, 1]`, 1 = supervised.
+    pub mask: Tensor<2>,
+    pub matched_fraction: f32,
+}

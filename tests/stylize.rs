@@ -1,0 +1,334 @@
+//! Stylization: the losses against hand-computed values, TCM's search
+//! against brute force, deferred back-propagation against direct
+//! back-propagation, frozen density, an end-to-end run on the procedural
+//! scene, and bad input. Runs on the backend named by REFNPR_BACKEND.
+
+mod common;
+
+use burn::tensor::{Int, Tensor, TensorData};
+use common::TempDir;
+use glam::Vec3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use refnpr::camera::{Camera, Intrinsics, look_at};
+use refnpr::checkpoint;
+use refnpr::config::TrainConfig;
+use refnpr::data::{self, DatasetKind, procedural};
+use refnpr::grid::{GridGeometry, RadianceGrid};
+use refnpr::render::{self, BatchTensors, MarchParams};
+use refnpr::stylize::config::StylizeConfig;
+use refnpr::stylize::frozen::{FrozenSamples, render_colour, render_plain};
+use refnpr::stylize::tcm::Template;
+use refnpr::stylize::{Method, StylizeJob, chunked_gradient, losses, run_stylize};
+use refnpr::tensor_util::{floats, to_vec};
+use refnpr::vgg::{Vgg16, VggLayer, image_tensor};
+
+fn value(t: Tensor<1>) -> f32 {
+    to_vec(t)[0]
+}
+
+fn close(a: f32, b: f32, tol: f32) -> bool {
+    (a - b).abs() <= tol * b.abs().max(1.0)
+}
+
+#[test]
+fn losses_match_hand_computed_values() {
+    let d = common::device();
+    let tol = common::tol(1e-5);
+    // Cosine distance: rows at 90 degrees (distance 1) and parallel (0).
+    let a = floats(vec![1.0, 0.0, 1.0, 1.0], [2, 2], &d);
+    let b = floats(vec![0.0, 1.0, 2.0, 2.0], [2, 2], &d);
+    assert!(close(value(losses::cosine_distance(a, b)), 0.5, tol));
+    // Content: mean squared difference (2^2 + 0) / 2 = 2, in torchvision units.
+    let c = losses::content_loss(floats(vec![1.0, 2.0], [1, 2], &d), floats(vec![3.0, 2.0], [1, 2], &d));
+    assert!(close(value(c), 2.0 / (losses::FEATURE_UNIT * losses::FEATURE_UNIT), tol));
+    // Patch means of a 4x4 image in 2x2 patches: channel 0 holds 0..16.
+    let mut img = vec![0.0f32; 3 * 16];
+    for (i, v) in img.iter_mut().take(16).enumerate() {
+        *v = i as f32;
+    }
+    let p = to_vec(losses::patch_means(floats(img, [1, 3, 4, 4], &d), 2));
+    // Patch (0,0) = mean(0,1,4,5) = 2.5; (0,1) = 4.5; (1,0) = 10.5; (1,1) = 12.5.
+    for (k, want) in [2.5f32, 4.5, 10.5, 12.5].into_iter().enumerate() {
+        assert!(close(p[k * 3], want, tol), "patch {k}: {} vs {want}", p[k * 3]);
+        assert_eq!(p[k * 3 + 1], 0.0);
+    }
+    // Colour: only the masked-in patch counts: (0.5)^2 / 1.
+    let patches = floats(vec![0.5, 0.5, 0.5, 1.0, 0.0, 0.0], [2, 3], &d);
+    let targets = floats(vec![0.5, 0.5, 1.0, 0.0, 0.0, 0.0], [2, 3], &d);
+    let mask = floats(vec![1.0, 0.0], [2, 1], &d);
+    assert!(close(value(losses::colour_loss(patches, targets, mask)), 0.25, tol));
+    // Image TV: one bright pixel in a 2x2 three-channel image: 1/6 across + 1/6 down.
+    let mut img = vec![0.0f32; 12];
+    img[0] = 1.0;
+    assert!(close(value(losses::image_tv(floats(img, [1, 3, 2, 2], &d))), 1.0 / 3.0, tol));
+    // NNFM: [1,0] -> nearest [1,0.1] (cos 0.995037), [0,1] -> [0,2] (cos 1).
+    let render = floats(vec![1.0, 0.0, 0.0, 1.0], [2, 2], &d);
+    let style = floats(vec![1.0, 0.1, -1.0, 0.0, 0.0, 2.0], [3, 2], &d);
+    let want = (1.0 - 1.0 / (1.01f32).sqrt()) / 2.0;
+    assert!(close(value(losses::nnfm_loss(render, style, 2)), want, tol));
+}
+
+/// One ray through two samples of known density and colour, by hand.
+#[test]
+fn frozen_render_matches_hand_compositing() {
+    let d = common::device();
+    // Two grid rows; each sample uses one row with full weight.
+    let samples = FrozenSamples {
+        num_rays: 1,
+        ray_offsets: vec![0, 2],
+        corner_rows: vec![0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1],
+        colour_weights: vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        weight: vec![0.4, 0.3],
+        final_transmittance: vec![0.3],
+    };
+    // Row 0 colour = C0 * c + 0.5: c = 0 -> 0.5 grey; row 1: c = 1/C0 -> 1.5 (no upper clamp), c = -2/C0 -> 0 (ReLU).
+    let c0 = refnpr::stylize::frozen::SH_C0;
+    let sh = floats(vec![0.0, 0.0, 0.0, 1.0 / c0, -2.0 / c0, 0.0], [2, 3], &d);
+    let rgb = to_vec(render_colour(sh, &samples.upload(&d), [1.0, 0.0, 0.2]));
+    let want = [0.4 * 0.5 + 0.3 * 1.5 + 0.3, 0.4 * 0.5, 0.4 * 0.5 + 0.3 * 0.5 + 0.3 * 0.2];
+    for c in 0..3 {
+        assert!(close(rgb[c], want[c], common::tol(1e-5)), "channel {c}: {} vs {}", rgb[c], want[c]);
+    }
+}
+
+#[test]
+fn tcm_search_matches_brute_force() {
+    let d = common::device();
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let (nq, nk, c) = (300, 257, 24);
+    let q: Vec<f32> = (0..nq * c).map(|_| rng.random::<f32>() - 0.3).collect();
+    let k: Vec<f32> = (0..nk * c).map(|_| rng.random::<f32>() - 0.3).collect();
+    let unit = |v: &[f32]| {
+        let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        v.iter().map(|x| x / n).collect::<Vec<f32>>()
+    };
+    let keys: Vec<f32> = k.chunks(c).flat_map(unit).collect();
+    let template = Template {
+        keys: vec![floats(keys.clone(), [nk, c], &d)],
+        values: vec![floats(k.clone(), [nk, c], &d)],
+        colour_keys: floats(keys.clone(), [nk, c], &d),
+        colour_values: Tensor::zeros([nk, 3], &d),
+    };
+    // Chunk 64: several chunks and a ragged last one.
+    let got = template.matches(&[floats(q.clone(), [nq, c], &d)], 64);
+    let got: Vec<i64> = got[0].clone().into_data().convert::<i64>().try_to_vec::<i64>().unwrap();
+    for i in 0..nq {
+        let qi = unit(&q[i * c..(i + 1) * c]);
+        let sims: Vec<f32> = keys.chunks(c).map(|kk| kk.iter().zip(&qi).map(|(a, b)| a * b).sum()).collect();
+        let best = (0..nk).max_by(|&a, &b| sims[a].total_cmp(&sims[b])).unwrap();
+        // Ties within float noise may pick either.
+        assert!(got[i] as usize == best || (sims[best] - sims[got[i] as usize]).abs() < 1e-5, "query {i}: {} vs {best}", got[i]);
+    }
+    // The guidance is the style value at the matched index.
+    let idx = Tensor::<1, Int>::from_data(TensorData::new(vec![3i32, 0], [2]), &d);
+    let g = to_vec(template.guidance(0, &idx));
+    assert_eq!(&g[..c], &k[3 * c..4 * c]);
+}
+
+/// A random grid with a blob of density in the middle and random DC colour.
+fn random_grid(seed: u64) -> RadianceGrid {
+    let d = common::device();
+    let geo = GridGeometry::new([12; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let n = geo.num_points();
+    let coords: Vec<u32> = (0..n as u32).collect();
+    let density: Vec<f32> = (0..n)
+        .map(|f| {
+            let [i, j, k] = geo.unflat(f);
+            let p = geo.grid_to_world(Vec3::new(i as f32, j as f32, k as f32));
+            if p.length() < 0.7 { 2.0 + 6.0 * rng.random::<f32>() } else { 0.0 }
+        })
+        .collect();
+    let sh: Vec<f32> = (0..n * 3).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect();
+    RadianceGrid::from_rows(geo, 0, coords, density, sh, &d)
+}
+
+fn test_camera(size: u32) -> Camera {
+    Camera::new(Intrinsics::from_fov_x(size, size, 0.8), look_at(Vec3::new(0.3, 0.5, 2.6), Vec3::ZERO, Vec3::Y))
+}
+
+/// Deferred back-propagation (full forward without autodiff, image gradient
+/// through VGG, chunked re-render injecting it) gives the grid gradient of
+/// direct back-propagation through one graph: relative L2 error < 1e-4
+/// (f32 summation order only; 1e-3 on wgpu). The frozen renderer also
+/// matches the general renderer's colours.
+#[test]
+fn deferred_backprop_equals_direct_backprop() {
+    let kind = common::backend();
+    let (d, ad) = (kind.device(), kind.autodiff_device());
+    let grid = random_grid(5);
+    let cam = test_camera(40);
+    let rays = cam.rays(None);
+    let march = MarchParams::default();
+    let bg = [1.0, 1.0, 1.0];
+    let samples = FrozenSamples::march(&grid, &rays, &march, 0.0);
+    assert!(samples.num_samples() > 1000, "the camera sees the blob");
+    // Frozen vs general renderer.
+    let frozen = render_plain(&grid.sh, &samples, bg, 4096);
+    let batch = render::generate_samples(&grid, &rays, &march);
+    let general = to_vec(render::composite(grid.density.clone(), grid.sh.clone(), &BatchTensors::new(&batch, None, &d), bg).rgb);
+    let worst = frozen.iter().zip(&general).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(worst < common::tol(1e-5), "frozen vs general renderer: {worst}");
+
+    let vgg = Vgg16::load(&ad);
+    let probe: Vec<f32> = {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        (0..100 * 256).map(|_| rng.random::<f32>()).collect()
+    };
+    let guidance = floats(probe, [100, 256], &d);
+    let loss_of = |image: Tensor<4>| {
+        let maps = vgg.features(image.clone(), &[VggLayer::Relu3_1]).unwrap();
+        let f = refnpr::features::block_matrix(&maps, &[VggLayer::Relu3_1], 0, [10, 10]);
+        losses::cosine_distance(f, guidance.clone()) + losses::image_tv(image.clone()) + losses::patch_means(image, 8).powf_scalar(2.0).mean()
+    };
+    let (w, h) = (40usize, 40usize);
+    // Deferred, in chunks of 173 rays.
+    let image = image_tensor(&frozen, w, h, &ad).require_grad();
+    let grads = loss_of(image.clone()).backward();
+    let g = image.grad(&grads).unwrap().reshape([3, w * h]).transpose();
+    let deferred = to_vec(chunked_gradient(&grid.sh, &samples, bg, 173, &|rgb, start, len| (rgb * g.clone().narrow(0, start, len)).sum()));
+    // Direct: one graph from the grid to the loss.
+    let leaf = grid.sh.clone().autodiff().require_grad();
+    let rgb = render_colour(leaf.clone(), &samples.upload(&d), bg);
+    let image = rgb.transpose().reshape([1, 3, h, w]);
+    let direct = to_vec(leaf.grad(&loss_of(image).backward()).unwrap());
+    let err: f32 = deferred.iter().zip(&direct).map(|(a, b)| (a - b) * (a - b)).sum::<f32>().sqrt();
+    let norm: f32 = direct.iter().map(|a| a * a).sum::<f32>().sqrt();
+    eprintln!("deferred vs direct: relative L2 error {:.2e} (|grad| {norm:.3e})", err / norm);
+    assert!(norm > 0.0);
+    assert!(err / norm < common::tol(1e-4), "relative error {}", err / norm);
+}
+
+fn tiny_photo_run(dir: &std::path::Path, steps: usize, num_train: usize) -> std::path::PathBuf {
+    let scene = dir.join("scene");
+    let opts = procedural::SceneOptions { seed: 2, size: 64, num_train, num_val: 1, num_test: 4 };
+    procedural::write_scene(&scene, &opts).unwrap();
+    let ds = data::load(&scene, &Default::default()).unwrap();
+    let mut c = TrainConfig::for_kind(DatasetKind::Blender);
+    c.grid.initial_res = [48; 3];
+    c.grid.upsample_steps = vec![steps / 2];
+    c.grid.upsample_res = vec![[96; 3]];
+    c.grid.sh_degree = 1;
+    c.optim.steps = steps;
+    c.optim.batch_rays = 2048;
+    c.optim.lr_delay_steps = 20;
+    c.checkpoint_every = steps;
+    let run = dir.join("photo");
+    refnpr::train::run_training(&ds, c, &run, common::backend(), false).unwrap();
+    run
+}
+
+/// A case: training view `view`, painted with the scene's stylized twin.
+fn write_case(dir: &std::path::Path, scene: &std::path::Path, view: usize, extra: &str) -> std::path::PathBuf {
+    let case = dir.join("case");
+    std::fs::create_dir_all(&case).unwrap();
+    std::fs::copy(scene.join(format!("stylized/train/r_{view}.png")), case.join("style.png")).unwrap();
+    std::fs::write(case.join("reference.toml"), format!("{extra}[[reference]]\nstyle = \"style.png\"\nview = \"train:{view}\"\n")).unwrap();
+    case
+}
+
+fn quick_config(epochs: usize) -> StylizeConfig {
+    let mut c = StylizeConfig::default();
+    c.schedule.image_epochs = epochs;
+    c.schedule.ray_epochs = 1.0;
+    c.loss.reference_rays = 4096;
+    c.loss.registered_rays = 4096;
+    c
+}
+
+fn job(photo: &std::path::Path, case: &std::path::Path, out: &std::path::Path, config: StylizeConfig, method: Method) -> StylizeJob {
+    StylizeJob {
+        photo: photo.to_path_buf(),
+        case: case.to_path_buf(),
+        out: out.to_path_buf(),
+        config,
+        method,
+        backend: common::backend(),
+        style: None,
+        data: None,
+        render_test: true,
+    }
+}
+
+/// Mean PSNR of a run's test renders against a dataset's test views.
+fn test_psnr(run: &std::path::Path, truth: &data::Dataset) -> f32 {
+    let d = common::device();
+    let ck = checkpoint::load_with(run, &d, false).unwrap();
+    let cfg = &ck.meta.config;
+    let mut sum = 0.0;
+    for v in &truth.test {
+        let r = render::render_view(&ck.grid, &v.camera, None, &cfg.march, ck.meta.background, 8192);
+        sum += refnpr::metrics::psnr(&r.rgb, &v.rgb);
+    }
+    sum / truth.test.len() as f32
+}
+
+/// End to end on the procedural scene: after Ref-NPR with one stylized
+/// training view as reference, the held-out test views are closer to the
+/// scene's ground-truth stylized twin than the photoreal renders are (by at
+/// least 1 dB), the density is bit-for-bit the photoreal one, and the
+/// outputs exist.
+#[test]
+fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
+    let t = TempDir::new("stylize");
+    let photo = tiny_photo_run(t.path(), 400, 16);
+    let scene = t.path().join("scene");
+    let case = write_case(t.path(), &scene, 0, "");
+    let out = t.path().join("style");
+    let report = run_stylize(&job(&photo, &case, &out, quick_config(4), Method::RefNpr)).unwrap();
+    let twin = data::load(&scene.join("stylized"), &Default::default()).unwrap();
+    let (before, after) = (test_psnr(&photo, &twin), test_psnr(&out, &twin));
+    eprintln!("PSNR to the stylized twin: photoreal {before:.2} dB, stylized {after:.2} dB; {:.1} s", report.total_seconds);
+    assert!(after >= before + 1.0, "stylized {after:.2} dB vs photoreal {before:.2} dB");
+
+    let d = common::device();
+    let a = checkpoint::load_with(&photo, &d, false).unwrap();
+    let b = checkpoint::load_with(&out, &d, false).unwrap();
+    assert_eq!(a.grid.coords, b.grid.coords);
+    assert_eq!(to_vec(a.grid.density.clone()), to_vec(b.grid.density.clone()), "density changed");
+    assert_eq!(b.meta.sh_degree, 0);
+    for f in ["stylize.json", "reference_0.png", "test/path.gif", "test/rgb/0000.png"] {
+        assert!(out.join(f).exists(), "{f} missing");
+    }
+    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("stylize.json")).unwrap()).unwrap();
+    let curve = json["curve"].as_array().unwrap();
+    assert!(curve.iter().any(|p| p["phase"] == "smooth") && curve.iter().any(|p| p["phase"] == "image"));
+    for k in ["registration", "refit", "content", "image_epochs", "smooth_update"] {
+        assert!(json["seconds"][k].as_f64().is_some(), "seconds.{k}");
+    }
+}
+
+/// Bad input: a case for another scene, a style image of another shape, a
+/// corrupt checkpoint, a config with an unknown key; and the shipped
+/// configs/stylize.toml is exactly the built-in defaults.
+#[test]
+fn bad_input_is_refused_with_the_file_named() {
+    let t = TempDir::new("stylize-bad");
+    let photo = tiny_photo_run(t.path(), 30, 4);
+    let scene = t.path().join("scene");
+    let out = t.path().join("style");
+
+    let case = write_case(t.path(), &scene, 0, "scene_name = \"fern\"\n");
+    let err = run_stylize(&job(&photo, &case, &out, quick_config(1), Method::RefNpr)).unwrap_err();
+    assert!(format!("{err:#}").contains("fern"), "{err:#}");
+
+    let case = write_case(t.path(), &scene, 0, "");
+    image::RgbImage::new(64, 32).save(case.join("style.png")).unwrap();
+    let err = run_stylize(&job(&photo, &case, &out, quick_config(1), Method::RefNpr)).unwrap_err();
+    assert!(format!("{err:#}").contains("aspect ratio") && format!("{err:#}").contains("style.png"), "{err:#}");
+
+    let bogus = t.path().join("bogus");
+    std::fs::create_dir_all(&bogus).unwrap();
+    std::fs::write(bogus.join("checkpoint.bin"), b"not a checkpoint at all").unwrap();
+    let err = run_stylize(&job(&bogus, &case, &out, quick_config(1), Method::RefNpr)).unwrap_err();
+    assert!(format!("{err:#}").contains("checkpoint.bin"), "{err:#}");
+
+    let err = StylizeConfig::from_toml_str("[loss]\nfeature_weight = 2.0\n", "my.toml").unwrap_err();
+    assert!(format!("{err:#}").contains("my.toml") && format!("{err:#}").contains("feature_weight"), "{err:#}");
+    let err = StylizeConfig::from_toml_str("[schedule]\nsmooth_fraction = 2.0\n", "my.toml").unwrap_err();
+    assert!(format!("{err:#}").contains("smooth_fraction"), "{err:#}");
+
+    let shipped = StylizeConfig::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/configs/stylize.toml"))).unwrap();
+    assert_eq!(shipped, StylizeConfig::default());
+}
