@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The test suite on every backend (the README's test command).
 #   flex:    everything (unit tests, renderer, datasets, training, CLI)
-#   ndarray: renderer, grid and VGG16 tests
-#   wgpu:    renderer, training and VGG16, through Mesa's software Vulkan when no GPU is present
+#   ndarray: renderer, grid, VGG16, and the stylization losses / TCM / deferred back-propagation
+#   wgpu:    the same plus training, through Mesa's software Vulkan when no GPU is present
+#   (the end-to-end stylization runs on flex only: VGG on lavapipe or ndarray is 10-100x slower)
 #   real data (../shared/data: lego, fern): loaders and a short fit, when that folder exists
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -12,11 +13,15 @@ export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 echo "== flex: full suite"
 REFNPR_BACKEND=flex cargo test --all-targets
 
-echo "== ndarray: renderer, grid, VGG16"
-REFNPR_BACKEND=ndarray cargo test --test renderer --test vgg --lib
+STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input)
 
-echo "== wgpu: renderer, training, VGG16"
+echo "== ndarray: renderer, grid, VGG16, stylization units"
+REFNPR_BACKEND=ndarray cargo test --test renderer --test vgg --lib
+REFNPR_BACKEND=ndarray cargo test --test stylize -- "${STYLIZE_UNITS[@]}"
+
+echo "== wgpu: renderer, training, VGG16, stylization units"
 REFNPR_BACKEND=wgpu cargo test --test renderer --test training --test vgg
+REFNPR_BACKEND=wgpu cargo test --test stylize -- "${STYLIZE_UNITS[@]}"
 
 DATA="${REFNPR_SHARED_DATA:-../shared/data}"
 if [ -d "$DATA/nerf_synthetic/lego" ] && [ -d "$DATA/nerf_llff_data/fern" ]; then

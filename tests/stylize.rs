@@ -332,3 +332,28 @@ fn bad_input_is_refused_with_the_file_named() {
     let shipped = StylizeConfig::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/configs/stylize.toml"))).unwrap();
     assert_eq!(shipped, StylizeConfig::default());
 }
+
+/// The ARF baseline runs on the same machinery: density frozen, its NNFM
+/// loss lower over the last epoch than over the first.
+#[test]
+fn arf_baseline_lowers_its_matching_loss() {
+    let t = TempDir::new("stylize-arf");
+    let photo = tiny_photo_run(t.path(), 120, 6);
+    let scene = t.path().join("scene");
+    let case = write_case(t.path(), &scene, 1, "");
+    let out = t.path().join("arf");
+    let mut cfg = quick_config(4);
+    cfg.schedule.ray_epochs = 0.5;
+    let mut j = job(&photo, &case, &out, cfg, Method::Arf);
+    j.render_test = false;
+    let report = run_stylize(&j).unwrap();
+    let image: Vec<f32> = report.curve.iter().filter(|p| p.phase == "image").map(|p| p.feature).collect();
+    assert_eq!(image.len(), 4 * 6, "ARF has no smooth update");
+    let (first, last) = (image[..6].iter().sum::<f32>() / 6.0, image[18..].iter().sum::<f32>() / 6.0);
+    eprintln!("ARF NNFM: first epoch {first:.4}, last epoch {last:.4}");
+    assert!(last < first * 0.95, "NNFM {first} -> {last}");
+    let d = common::device();
+    let a = checkpoint::load_with(&photo, &d, false).unwrap();
+    let b = checkpoint::load_with(&out, &d, false).unwrap();
+    assert_eq!(to_vec(a.grid.density.clone()), to_vec(b.grid.density.clone()), "density changed");
+}

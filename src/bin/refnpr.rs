@@ -148,6 +148,17 @@ enum Command {
         #[arg(long)]
         no_render: bool,
     },
+    /// PSNR / SSIM of a run's renders against a dataset's test views (e.g. the procedural scene's stylized twin).
+    Eval {
+        /// Run folder (or checkpoint file).
+        #[arg(long)]
+        ckpt: PathBuf,
+        /// Dataset whose test views are the ground truth (default: the run's own).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        #[arg(long)]
+        backend: Option<BackendKind>,
+    },
     /// Writes the built-in procedural scene (Blender layout, with depth, ids and a stylized twin).
     Scene {
         #[arg(long)]
@@ -326,6 +337,12 @@ fn run() -> Result<()> {
             let phases: Vec<String> = r.seconds.iter().map(|(k, v)| format!("{k} {v:.1}s")).collect();
             println!("stylized ({}) in {:.1} s: {}", r.method, r.total_seconds, phases.join(", "));
             println!("wrote {}/checkpoint.bin, stylize.json{}", out.display(), if job.render_test { ", test/" } else { "" });
+        }
+        Command::Eval { ckpt, data: data_dir, backend } => {
+            let backend = backend_or_env(backend)?;
+            let (ck, dataset) = checkpoint::load_run(&ckpt, data_dir.as_deref(), &backend.device())?;
+            let r = train::evaluate(&ck.grid, &dataset, &dataset.test, &ck.meta.config, None)?;
+            println!("{}", serde_json::to_string(&serde_json::json!({"psnr": r.psnr, "ssim": r.ssim, "views": r.per_view_psnr.len(), "data": dataset.root}))?);
         }
         Command::Scene { out, seed, size } => {
             let opts = procedural::SceneOptions { seed, size, ..Default::default() };

@@ -67,7 +67,7 @@ pub struct LossConfig {
 impl Default for LossConfig {
     fn default() -> Self {
         Self {
-            reference: 1.0,
+            reference: 10.0,
             reference_rays: 50_000,
             registered_rays: 50_000,
             feature: 1.0,

@@ -609,13 +609,16 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
         Method::RefNpr => cfg.loss.content > 0.0 && cfg.ablation.use_feature_loss,
         Method::Arf => cfg.arf.content > 0.0,
     };
-    let need = feature_cache_bytes(job.method, dataset.train.len(), width, height, keep_content) + ck.grid.num_rows() as u64 * 3 * 4 * 6;
+    let grid_bytes = ck.grid.num_rows() as u64 * 3 * 4 * 6; // SH, RMSprop state, gradients
+    let per_view = feature_cache_bytes(job.method, 1, width, height, keep_content);
+    let need = per_view * dataset.train.len() as u64 + grid_bytes;
     if let Some(avail) = available_memory_bytes()
         && need > avail / 4 * 3
     {
+        let fit = (avail / 4 * 3).saturating_sub(grid_bytes) / per_view.max(1);
         bail!(
-            "stylizing {} views of {width}x{height} needs about {:.1} GB for feature caches and the grid, but {:.1} GB is available: \
-             use a lower-resolution photoreal run, or set loss.content = 0 (drops the cached content features)",
+            "stylizing {} views of {width}x{height} needs about {:.1} GB for feature caches and the grid, but {:.1} GB is available \
+             (about {fit} views fit): use a lower-resolution photoreal run, or set loss.content = 0 (drops the cached content features)",
             dataset.train.len(),
             need as f64 / 1e9,
             avail as f64 / 1e9
