@@ -362,7 +362,7 @@ fn to_padded<const D: usize>(packed: Tensor<D>, bt: &BatchTensors, tail: [usize;
     let mut zshape = tail;
     zshape[0] = 1;
     let zero = Tensor::zeros(zshape, &packed.device());
-    Tensor::cat(vec![packed, zero], 0).select(0, bt.pad_map.clone())
+    crate::tensor_util::select_rows(Tensor::cat(vec![packed, zero], 0), bt.pad_map.clone())
 }
 
 /// Equations 1-2 on the packed samples: density and colour by trilinear
@@ -381,12 +381,12 @@ pub fn composite(density_rows: Tensor<2>, sh_rows: Tensor<2>, bt: &BatchTensors,
     }
     let nb = sh_rows.dims()[1] / 3;
     // Trilinear interpolation: gather the 8 corner rows, weight, sum.
-    let sigma = (density_rows.select(0, bt.corners.clone()) * bt.corner_weights.clone())
+    let sigma = (crate::tensor_util::select_rows(density_rows, bt.corners.clone()) * bt.corner_weights.clone())
         .reshape([s, 8])
         .sum_dim(1)
         .reshape([s]);
     let sigma = relu(sigma);
-    let coeffs = (sh_rows.select(0, bt.corners.clone()) * bt.colour_weights.clone())
+    let coeffs = (crate::tensor_util::select_rows(sh_rows, bt.corners.clone()) * bt.colour_weights.clone())
         .reshape([s, 8, 3 * nb])
         .sum_dim(1)
         .reshape([s, 3, nb]);

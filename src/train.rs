@@ -132,7 +132,7 @@ fn total_variation(values: Tensor<2>, lr: &LocalRows, device: &Device) -> Tensor
     let core = values.clone().narrow(0, 0, n);
     let mut sq = None;
     for nb in &lr.neighbours {
-        let d = values.clone().select(0, indices(nb.clone(), device)) - core.clone();
+        let d = crate::tensor_util::select_rows(values.clone(), indices(nb.clone(), device)) - core.clone();
         let d2 = d.clone() * d;
         sq = Some(match sq {
             None => d2,
@@ -291,9 +291,9 @@ fn rmsprop_rows(
     // backend can update them in place instead of copying the whole grid.
     let device = param.device();
     let a = std::mem::replace(avg, Tensor::zeros([1, 1], &device));
-    *avg = a.select_assign(0, rows.clone(), v_new - v_old, IndexingUpdateOp::Add);
+    *avg = crate::tensor_util::assign_rows(a, rows.clone(), v_new - v_old, IndexingUpdateOp::Add);
     let p = std::mem::replace(param, Tensor::zeros([1, 1], &device));
-    *param = p.select_assign(0, rows.clone(), update.clone(), IndexingUpdateOp::Add);
+    *param = crate::tensor_util::assign_rows(p, rows.clone(), update.clone(), IndexingUpdateOp::Add);
     old + update
 }
 

@@ -8,6 +8,7 @@ use refnpr::camera::{Camera, Intrinsics, Ray};
 use refnpr::grid::{GridGeometry, RadianceGrid};
 use refnpr::render::{self, BatchTensors, MarchParams};
 use refnpr::sh;
+use burn::tensor::Tensor;
 use refnpr::tensor_util::{floats, to_vec};
 
 fn params(step: f32) -> MarchParams {
@@ -177,4 +178,22 @@ fn depth_march_with_block_skipping_equals_the_renderer() {
     let hits = tdepth.iter().filter(|d| d.is_some()).count();
     assert!(hits > 200 && hits < rays.len(), "the sphere covers part of the view: {hits}");
     assert_eq!(fast, tdepth);
+}
+
+/// Gathers and scatters of more than 65535 rows (every renderer and
+/// optimiser step has them) are exact: Burn 0.22.1's wgpu `select_assign`,
+/// also `select`'s backward, drops indices beyond 65535, which
+/// `tensor_util::{select_rows, assign_rows}` work around by splitting.
+#[test]
+fn long_gathers_and_scatters_are_exact() {
+    use refnpr::tensor_util::{assign_rows, indices, select_rows};
+    let d = common::device();
+    for n in [1000usize, 70_000, 140_001] {
+        let x = floats(vec![1.0; 30], [10, 3], &d).autodiff().require_grad();
+        let idx: Vec<i32> = (0..n).map(|i| (i % 10) as i32).collect();
+        let g = to_vec(x.grad(&select_rows(x.clone(), indices(idx.clone(), &d)).sum().backward()).unwrap());
+        assert_eq!(g.iter().sum::<f32>(), (3 * n) as f32, "gather backward over {n} rows");
+        let t = assign_rows(Tensor::<2>::zeros([10, 3], &d), indices(idx, &d), Tensor::ones([n, 3], &d), burn::tensor::IndexingUpdateOp::Add);
+        assert_eq!(to_vec(t).iter().sum::<f32>(), (3 * n) as f32, "scatter-add of {n} rows");
+    }
 }

@@ -155,10 +155,10 @@ pub fn render_colour(sh: Tensor<2>, ft: &FrozenTensors, background: [f32; 3]) ->
         return background_part;
     }
     let s = ft.num_samples;
-    let coeff = (sh.select(0, ft.corner_rows.clone()) * ft.colour_weights.clone()).reshape([s, 8, 3]).sum_dim(1).reshape([s, 3]);
+    let coeff = (crate::tensor_util::select_rows(sh, ft.corner_rows.clone()) * ft.colour_weights.clone()).reshape([s, 8, 3]).sum_dim(1).reshape([s, 3]);
     let colour = relu(coeff * SH_C0 + 0.5);
     let contribution = colour * ft.weight.clone();
-    Tensor::zeros([ft.num_rays, 3], &device).select_assign(0, ft.ray_of_sample.clone(), contribution, IndexingUpdateOp::Add)
+    crate::tensor_util::assign_rows(Tensor::zeros([ft.num_rays, 3], &device), ft.ray_of_sample.clone(), contribution, IndexingUpdateOp::Add)
         + background_part
 }
 

@@ -67,5 +67,5 @@ pub fn nnfm_loss(render: Tensor<2>, style: Tensor<2>, chunk: usize) -> Tensor<1>
     let keys = normalise_rows(style.clone());
     let (idx, _) = nearest_by_dot(query.inner(), keys.inner(), chunk);
     let idx = crate::tensor_util::indices(idx.into_iter().map(|i| i as i32).collect(), &style.device());
-    cosine_distance(render, style.select(0, idx))
+    cosine_distance(render, crate::tensor_util::select_rows(style, idx))
 }

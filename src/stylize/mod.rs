@@ -42,7 +42,7 @@ use crate::data::Dataset;
 use crate::grid::{RadianceGrid, available_memory_bytes};
 use crate::reference::{self, ReferenceCase};
 use crate::registration::{RegistrationFile, register_case};
-use crate::tensor_util::{floats, indices, scalar};
+use crate::tensor_util::{floats, indices, scalar, select_rows};
 use crate::train::{peak_rss_mb, progress_bar};
 use crate::vgg::{Vgg16, VggLayer};
 use config::StylizeConfig;
@@ -187,11 +187,11 @@ impl StyleField {
         let rows: Vec<i32> = (0..count).map(|_| rng.random_range(0..n) as i32).collect();
         let device = self.grid.device();
         let leaf = self.grid.sh.clone().autodiff().require_grad();
-        let core = leaf.clone().select(0, indices(rows.clone(), &device));
+        let core = select_rows(leaf.clone(), indices(rows.clone(), &device));
         let mut sq = None;
         for nb in &self.neighbours {
             let nrows: Vec<i32> = rows.iter().map(|&r| nb[r as usize]).collect();
-            let d = leaf.clone().select(0, indices(nrows, &device)) - core.clone();
+            let d = select_rows(leaf.clone(), indices(nrows, &device)) - core.clone();
             let d2 = d.clone() * d;
             sq = Some(match sq {
                 None => d2,
