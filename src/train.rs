@@ -143,7 +143,7 @@ fn total_variation(values: Tensor<2>, lr: &LocalRows, device: &Device) -> Tensor
 }
 
 /// Exponential decay from `a` to `b` over `t` in [0, 1].
-fn log_lerp(a: f32, b: f32, t: f32) -> f32 {
+pub(crate) fn log_lerp(a: f32, b: f32, t: f32) -> f32 {
     (a.ln() * (1.0 - t) + b.ln() * t).exp()
 }
 

@@ -284,6 +284,8 @@ struct Stylizer<'a> {
     view_samples: Vec<Option<FrozenSamples>>,
     /// Sample lists of the reference views.
     reference_samples: Vec<FrozenSamples>,
+    /// (reference, pixel) of every reference pixel that sees the scene.
+    reference_hits: Vec<(usize, usize)>,
     registration: RegistrationFile,
     /// All registered pixels: (view, pixel, colour).
     registered: Vec<(u32, u32, [f32; 3])>,
@@ -332,17 +334,9 @@ impl Stylizer<'_> {
             let batch_rays: Vec<Ray> = picks.iter().map(|&i| rays[i]).collect();
             let target = floats(picks.iter().flat_map(|&i| colours[i]).collect(), [picks.len(), 3], &self.device);
             let samples = FrozenSamples::march(&self.field.grid, &batch_rays, &self.march, self.cfg.min_sample_weight);
-            let n = picks.len() as f32;
-            let mse_sum = std::cell::Cell::new(0.0f32);
-            let grad = chunked_gradient(&self.field.grid.sh, &samples, self.background, self.cfg.render_chunk, &|rgb, start, len| {
-                let d = rgb - target.clone().narrow(0, start, len);
-                let l = (d.clone() * d).sum() / (3.0 * n);
-                mse_sum.set(mse_sum.get() + scalar(l.clone().inner()));
-                l
-            });
+            let (grad, mse) = self.mse_gradient(&samples, target, 1.0);
             let grad = self.with_tv(grad, &mut rng);
             self.field.rmsprop(grad, s.lr_refit, s.rmsprop_beta, s.eps);
-            let mse = mse_sum.get();
             bar.set_position(step as u64 + 1);
             bar.set_message(format!("refit mse {mse:.5} psnr {:.2}", crate::metrics::psnr_from_mse(mse)));
             if bar.is_hidden() && (step + 1) % (steps / 10).max(1) == 0 {
@@ -352,6 +346,20 @@ impl Stylizer<'_> {
         }
         bar.finish_and_clear();
         Ok(())
+    }
+
+    /// `weight` x the mean squared error of the rays' colours to `target`
+    /// (`[rays, 3]`): its SH gradient and its value.
+    fn mse_gradient(&self, samples: &FrozenSamples, target: Tensor<2>, weight: f32) -> (Tensor<2>, f32) {
+        let scale = weight / (3.0 * samples.num_rays.max(1) as f32);
+        let value = std::cell::Cell::new(0.0f32);
+        let grad = chunked_gradient(&self.field.grid.sh, samples, self.background, self.cfg.render_chunk, &|rgb, start, len| {
+            let d = rgb - target.clone().narrow(0, start, len);
+            let loss = (d.clone() * d).sum() * scale;
+            value.set(value.get() + scalar(loss.clone().inner()));
+            loss
+        });
+        (grad, value.get())
     }
 
     fn with_tv(&self, grad: Tensor<2>, rng: &mut ChaCha8Rng) -> Tensor<2> {
@@ -383,13 +391,7 @@ impl Stylizer<'_> {
         // Reference pixels that see the scene.
         let mut samples = FrozenSamples::default();
         let mut target = Vec::new();
-        let hits: Vec<(usize, usize)> = self
-            .registration
-            .references
-            .iter()
-            .enumerate()
-            .flat_map(|(r, p)| p.hits.iter().enumerate().filter(|(_, h)| **h).map(move |(i, _)| (r, i)))
-            .collect();
+        let hits = &self.reference_hits;
         if !hits.is_empty() {
             let picks: Vec<(usize, usize)> =
                 if l.reference_rays >= hits.len() { hits.clone() } else { (0..l.reference_rays).map(|_| hits[rng.random_range(0..hits.len())]).collect() };
@@ -409,16 +411,9 @@ impl Stylizer<'_> {
         let mut total: Option<Tensor<2>> = None;
         let mut value = 0.0;
         for (samples, target) in groups {
-            let n = samples.num_rays;
-            let target = floats(target, [n, 3], &self.device);
-            let sum = std::cell::Cell::new(0.0f32);
-            let g = chunked_gradient(&self.field.grid.sh, &samples, self.background, self.cfg.render_chunk, &|rgb, start, len| {
-                let d = rgb - target.clone().narrow(0, start, len);
-                let loss = (d.clone() * d).sum() * (l.reference / (3.0 * n as f32));
-                sum.set(sum.get() + scalar(loss.clone().inner()));
-                loss
-            });
-            value += sum.get();
+            let target = floats(target, [samples.num_rays, 3], &self.device);
+            let (g, v) = self.mse_gradient(&samples, target, l.reference);
+            value += v;
             total = Some(match total {
                 None => g,
                 Some(t) => t + g,
@@ -678,6 +673,12 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
         device: device.clone(),
         view_samples: vec![None; dataset.train.len()],
         reference_samples: Vec::new(),
+        reference_hits: registration
+            .references
+            .iter()
+            .enumerate()
+            .flat_map(|(r, p)| p.hits.iter().enumerate().filter(|(_, h)| **h).map(move |(i, _)| (r, i)))
+            .collect(),
         registration,
         registered,
         curve: Vec::new(),
@@ -737,7 +738,7 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
             };
             let grad = st.with_tv(grad, &mut rng);
             let frac = step as f32 / total_steps.max(1) as f32;
-            let lr = (s.lr.ln() * (1.0 - frac) + s.lr_final.ln() * frac).exp();
+            let lr = crate::train::log_lerp(s.lr, s.lr_final, frac);
             st.field.rmsprop(grad, lr, s.rmsprop_beta, s.eps);
             let point = CurvePoint {
                 phase: if smooth { "smooth" } else { "image" },
