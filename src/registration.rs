@@ -22,10 +22,10 @@ const MAGIC: &[u8; 8] = b"REFNPRR1";
 
 /// The surface a camera sees in the photoreal field (equation-4 depth).
 pub fn field_surface(ck: &Checkpoint, camera: &Camera) -> Surface {
-    surface_with(&render::DepthMarcher::new(&ck.grid), ck, camera)
+    surface_with(&render::Marcher::new(&ck.grid), ck, camera)
 }
 
-fn surface_with(marcher: &render::DepthMarcher, ck: &Checkpoint, camera: &Camera) -> Surface {
+fn surface_with(marcher: &render::Marcher, ck: &Checkpoint, camera: &Camera) -> Surface {
     let rays = camera.rays(ck.meta.ndc.as_ref());
     let depth = marcher.depths(&rays, &ck.meta.config.march);
     Surface::from_depth(&rays, &depth, camera.intrinsics.width as usize, camera.intrinsics.height as usize)
@@ -133,7 +133,7 @@ pub fn register_case(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, p
         warnings.push(w);
     }
     let t0 = Instant::now();
-    let marcher = render::DepthMarcher::new(&ck.grid);
+    let marcher = render::Marcher::new(&ck.grid);
     let cameras = case.cameras(dataset)?;
     let mut refs = Vec::new();
     let mut ref_pixels = Vec::new();

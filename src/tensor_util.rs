@@ -32,12 +32,20 @@ pub fn scalar(t: Tensor<1>) -> f32 {
 /// it is also the backward of `select`; pieces below that are exact everywhere.
 pub const INDEX_PIECE: usize = 1 << 15;
 
+/// Whether long index lists must be cut into pieces on this device: the
+/// bug is in the cubecl (GPU) kernels; the CPU backends (which report no
+/// device identity) take any length in one call, which on a large grid
+/// saves one full-size gradient buffer per piece.
+fn needs_pieces(device: &Device) -> bool {
+    device.identity().is_some()
+}
+
 /// `x.select(0, idx)` whose backward stays exact on wgpu: long index lists
 /// are gathered in pieces and concatenated (each piece's backward is a
 /// `select_assign` of at most `INDEX_PIECE` indices).
 pub fn select_rows<const D: usize>(x: Tensor<D>, idx: Tensor<1, Int>) -> Tensor<D> {
     let n = idx.dims()[0];
-    if n <= INDEX_PIECE {
+    if n <= INDEX_PIECE || !needs_pieces(&x.device()) {
         return x.select(0, idx);
     }
     let pieces = (0..n).step_by(INDEX_PIECE).map(|s| x.clone().select(0, idx.clone().narrow(0, s, INDEX_PIECE.min(n - s)))).collect();
@@ -47,7 +55,7 @@ pub fn select_rows<const D: usize>(x: Tensor<D>, idx: Tensor<1, Int>) -> Tensor<
 /// `target.select_assign(0, idx, values, op)` in pieces of at most `INDEX_PIECE` indices (see there).
 pub fn assign_rows<const D: usize>(target: Tensor<D>, idx: Tensor<1, Int>, values: Tensor<D>, op: IndexingUpdateOp) -> Tensor<D> {
     let n = idx.dims()[0];
-    if n <= INDEX_PIECE {
+    if n <= INDEX_PIECE || !needs_pieces(&target.device()) {
         return target.select_assign(0, idx, values, op);
     }
     let mut t = target;

@@ -19,7 +19,7 @@ use refnpr::render::{self, BatchTensors, MarchParams};
 use refnpr::stylize::config::StylizeConfig;
 use refnpr::stylize::frozen::{FrozenSamples, render_colour, render_plain};
 use refnpr::stylize::tcm::Template;
-use refnpr::stylize::{Method, StylizeJob, chunked_gradient, losses, run_stylize};
+use refnpr::stylize::{Method, StyleField, StylizeJob, chunked_gradient, losses, run_stylize};
 use refnpr::tensor_util::{floats, to_vec};
 use refnpr::vgg::{Vgg16, VggLayer, image_tensor};
 
@@ -142,6 +142,55 @@ fn random_grid(seed: u64) -> RadianceGrid {
         .collect();
     let sh: Vec<f32> = (0..n * 3).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect();
     RadianceGrid::from_rows(geo, 0, coords, density, sh, &d)
+}
+
+/// The SH total variation's gradient (random subset of rows, local autodiff
+/// leaf) against central finite differences of the same sum in plain Rust.
+#[test]
+fn sh_tv_gradient_matches_finite_differences() {
+    let grid = random_grid(7);
+    let geo = grid.geometry;
+    let sh0 = to_vec(grid.sh.clone());
+    let n = grid.num_rows();
+    let field = StyleField::new(grid);
+    let (weight, fraction, seed) = (0.5f32, 0.3f32, 11u64);
+    let grad = to_vec(field.tv_gradient(weight, fraction, &mut ChaCha8Rng::seed_from_u64(seed)).expect("a TV gradient"));
+    // The same picks (every lattice point is a row here, row = flat index).
+    let count = (n as f32 * fraction).ceil() as usize;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let picks: Vec<usize> = (0..count).map(|_| rng.random_range(0..n)).collect();
+    let neighbour = |r: usize, axis: usize| {
+        let mut ijk = geo.unflat(r);
+        ijk[axis] += 1;
+        if ijk[axis] < geo.res[axis] { geo.flat(ijk[0], ijk[1], ijk[2]) } else { r }
+    };
+    let tv = |sh: &[f32]| -> f64 {
+        let sum: f64 = picks
+            .iter()
+            .map(|&r| {
+                let sq: f64 = (0..3).flat_map(|a| (0..3).map(move |c| (a, c))).map(|(a, c)| (sh[neighbour(r, a) * 3 + c] as f64 - sh[r * 3 + c] as f64).powi(2)).sum();
+                (sq + 1e-9).sqrt()
+            })
+            .sum();
+        sum * weight as f64 / count as f64
+    };
+    let mut checked = 0;
+    for &r in picks.iter().take(40) {
+        for c in 0..3 {
+            let i = r * 3 + c;
+            let h = 1e-3f32;
+            let (mut up, mut down) = (sh0.clone(), sh0.clone());
+            up[i] += h;
+            down[i] -= h;
+            let fd = ((tv(&up) - tv(&down)) / (2.0 * h as f64)) as f32;
+            assert!((fd - grad[i]).abs() < 2e-3 * fd.abs().max(1e-3) + 2e-4, "row {r} channel {c}: finite differences {fd}, gradient {}", grad[i]);
+            checked += 1;
+        }
+    }
+    assert!(checked >= 100);
+    // Rows far from every pick get nothing.
+    let touched: std::collections::HashSet<usize> = picks.iter().flat_map(|&r| [r, neighbour(r, 0), neighbour(r, 1), neighbour(r, 2)]).collect();
+    assert!((0..n).filter(|r| !touched.contains(r)).all(|r| (0..3).all(|c| grad[r * 3 + c] == 0.0)));
 }
 
 fn test_camera(size: u32) -> Camera {

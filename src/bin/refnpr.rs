@@ -217,6 +217,7 @@ fn backend_or_env(b: Option<BackendKind>) -> Result<BackendKind> {
 }
 
 fn main() {
+    keep_freed_memory();
     if let Err(e) = run() {
         eprintln!("error: {e:#}");
         std::process::exit(1);
@@ -395,3 +396,21 @@ fn load_run(ckpt: &std::path::Path, data_dir: Option<PathBuf>) -> Result<(checkp
 // the OS and page-faults back in (measured: a third of the time in the kernel).
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+// mimalloc's own C entry point (linked in by the `mimalloc` crate, which
+// does not wrap it). `mi_option_purge_delay` is 15 in mimalloc v2 and v3's
+// `mi_option_e`.
+unsafe extern "C" {
+    fn mi_option_set(option: std::ffi::c_int, value: std::ffi::c_long);
+}
+const MI_OPTION_PURGE_DELAY: std::ffi::c_int = 15;
+
+/// Never hand freed memory back to the OS. By default mimalloc purges it
+/// after 10 ms, and a stylization step (VGG activations, gradient buffers
+/// of tens of MB) then spends a quarter of its time in the kernel zeroing
+/// fresh pages (measured on lego: 2.4 s per step instead of 3.6 s without
+/// purging). Peak memory is unchanged; memory is only reused.
+fn keep_freed_memory() {
+    // SAFETY: sets a process-wide allocator option before any thread is started.
+    unsafe { mi_option_set(MI_OPTION_PURGE_DELAY, -1) };
+}

@@ -29,7 +29,7 @@ use std::str::FromStr;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, IndexingUpdateOp, Tensor};
 use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -42,7 +42,7 @@ use crate::data::Dataset;
 use crate::grid::{RadianceGrid, available_memory_bytes};
 use crate::reference::{self, ReferenceCase};
 use crate::registration::{RegistrationFile, register_case};
-use crate::tensor_util::{floats, indices, scalar, select_rows};
+use crate::tensor_util::{assign_rows, floats, indices, scalar, select_rows};
 use crate::train::{peak_rss_mb, progress_bar};
 use crate::vgg::{Vgg16, VggLayer};
 use config::StylizeConfig;
@@ -184,69 +184,58 @@ impl StyleField {
             return None;
         }
         let count = ((n as f32 * fraction).ceil() as usize).clamp(1, n);
-        let rows: Vec<i32> = (0..count).map(|_| rng.random_range(0..n) as i32).collect();
+        let core: Vec<i32> = (0..count).map(|_| rng.random_range(0..n) as i32).collect();
+        // Leaf = the rows involved (the picked rows and their neighbours), local indices.
+        let mut lists: Vec<Vec<i32>> = std::iter::once(core.clone()).chain(self.neighbours.iter().map(|nb| core.iter().map(|&r| nb[r as usize]).collect())).collect();
+        let mut local = frozen::LocalRows::new(n);
+        let touched = local.localise_all(&mut lists);
         let device = self.grid.device();
-        let leaf = self.grid.sh.clone().autodiff().require_grad();
-        let core = select_rows(leaf.clone(), indices(rows.clone(), &device));
-        let mut sq = None;
-        for nb in &self.neighbours {
-            let nrows: Vec<i32> = rows.iter().map(|&r| nb[r as usize]).collect();
-            let d = select_rows(leaf.clone(), indices(nrows, &device)) - core.clone();
-            let d2 = d.clone() * d;
-            sq = Some(match sq {
-                None => d2,
-                Some(s) => s + d2,
-            });
-        }
-        let tv = (sq.expect("three axes").sum_dim(1) + 1e-9).sqrt().sum() * (weight / count as f32);
-        let grads = tv.backward();
-        leaf.grad(&grads)
+        let rows = indices(touched, &device);
+        let leaf = select_rows(self.grid.sh.clone(), rows.clone()).autodiff().require_grad();
+        let mut lists = lists.into_iter().map(|l| select_rows(leaf.clone(), indices(l, &device)));
+        let centre = lists.next().expect("the picked rows");
+        let sq = lists.map(|nb| (nb - centre.clone()).powi_scalar(2)).reduce(|a, b| a + b).expect("three axes");
+        let tv = (sq.sum_dim(1) + 1e-9).sqrt().sum() * (weight / count as f32);
+        let g = leaf.grad(&tv.backward())?;
+        Some(assign_rows(Tensor::zeros([n, 3], &device), rows, g, IndexingUpdateOp::Add))
     }
 }
 
 /// d/d(sh) of the sum over ray chunks of `loss_of(rendered chunk, first ray, rays)`:
 /// each chunk is rendered with autodiff and back-propagated on its own, so
 /// memory is bounded by the chunk (the second half of deferred back-propagation).
+/// The autodiff leaf of a chunk is only the rows its samples touch (a grid
+/// has millions of rows, a chunk touches a few percent of them); their
+/// gradients are added into one full-size buffer.
 pub fn chunked_gradient(sh: &Tensor<2>, samples: &FrozenSamples, background: [f32; 3], chunk: usize, loss_of: &dyn Fn(Tensor<2>, usize, usize) -> Tensor<1>) -> Tensor<2> {
     let device = sh.device();
-    let mut total: Option<Tensor<2>> = None;
+    let mut total = Tensor::zeros(sh.dims(), &device);
+    let mut local = frozen::LocalRows::new(sh.dims()[0]);
     let mut start = 0;
     while start < samples.num_rays {
         let len = chunk.max(1).min(samples.num_rays - start);
-        let ft = samples.range(start, len).upload(&device);
-        let leaf = sh.clone().autodiff().require_grad();
+        let mut part = samples.range(start, len);
+        let touched = local.localise(&mut part.corner_rows);
+        let ft = part.upload(&device);
+        let rows = indices(touched, &device);
+        let leaf = select_rows(sh.clone(), rows.clone()).autodiff().require_grad();
         let rgb = frozen::render_colour(leaf.clone(), &ft, background);
         let loss = loss_of(rgb, start, len);
         // A chunk whose rays all miss the scene renders the background: no graph, no gradient.
-        if !loss.is_tracked() {
-            start += len;
-            continue;
-        }
-        if let Some(g) = leaf.grad(&loss.backward()) {
-            total = Some(match total {
-                None => g,
-                Some(t) => t + g,
-            });
+        if loss.is_tracked()
+            && let Some(g) = leaf.grad(&loss.backward())
+        {
+            total = assign_rows(total, rows, g, IndexingUpdateOp::Add);
         }
         start += len;
     }
-    total.unwrap_or_else(|| Tensor::zeros(sh.dims(), &device))
+    total
 }
 
 /// The interleaved `[pixels, 3]` gradient of an image loss (planar `[1, 3, H, W]` gradient in).
 fn interleaved(grad: Tensor<4>) -> Tensor<2> {
     let [_, c, h, w] = grad.dims();
     grad.reshape([c, h * w]).transpose()
-}
-
-/// The ray through pixel `p` of a camera (NDC-warped for forward-facing scenes).
-fn pixel_ray(camera: &Camera, p: usize, ndc: Option<&crate::camera::NdcParams>) -> Ray {
-    let w = camera.intrinsics.width as usize;
-    let r = camera.ray((p % w) as f32, (p / w) as f32);
-    match ndc {
-        Some(n) => to_ndc(r, n),
-        None => r,
-    }
 }
 
 /// Per-view data kept for the image epochs.
@@ -289,6 +278,8 @@ struct Stylizer<'a> {
     registration: RegistrationFile,
     /// All registered pixels: (view, pixel, colour).
     registered: Vec<(u32, u32, [f32; 3])>,
+    /// Sample lists of the registered pixels, in that order (None = re-marched when picked).
+    registered_samples: Option<FrozenSamples>,
     curve: Vec<CurvePoint>,
     warnings: Vec<String>,
 }
@@ -298,6 +289,17 @@ impl Stylizer<'_> {
         match &self.view_samples[v] {
             Some(s) => std::borrow::Cow::Borrowed(s),
             None => std::borrow::Cow::Owned(self.march_camera(&self.dataset.train[v].camera)),
+        }
+    }
+
+    /// The ray through pixel `p` of training view `v` (NDC-warped for forward-facing scenes).
+    fn pixel_ray(&self, v: usize, p: usize) -> Ray {
+        let camera = &self.dataset.train[v].camera;
+        let w = camera.intrinsics.width as usize;
+        let r = camera.ray((p % w) as f32, (p / w) as f32);
+        match &self.ndc {
+            Some(n) => to_ndc(r, n),
+            None => r,
         }
     }
 
@@ -369,10 +371,17 @@ impl Stylizer<'_> {
         }
     }
 
-    /// Caches the sample lists of the views, up to the configured memory.
+    /// Caches sample lists up to the configured memory: first the
+    /// registered pixels (a batch of them is rendered every step), then the views.
     fn cache_samples(&mut self) {
         let budget = self.cfg.sample_cache_mb * 1024 * 1024;
         let mut used = 0usize;
+        if self.job.method == Method::RefNpr && !self.registered.is_empty() {
+            let rays: Vec<Ray> = self.registered.iter().map(|p| self.pixel_ray(p.0 as usize, p.1 as usize)).collect();
+            let s = FrozenSamples::march(&self.field.grid, &rays, &self.march, self.cfg.min_sample_weight);
+            used += s.bytes();
+            self.registered_samples = (used <= budget).then_some(s);
+        }
         for v in 0..self.dataset.train.len() {
             let s = self.march_camera(&self.dataset.train[v].camera);
             used += s.bytes();
@@ -403,10 +412,15 @@ impl Stylizer<'_> {
             groups.push((samples, target));
         }
         if !self.cfg.ablation.reference_rays_only && !self.registered.is_empty() && l.registered_rays > 0 {
-            let picks: Vec<&(u32, u32, [f32; 3])> = (0..l.registered_rays).map(|_| &self.registered[rng.random_range(0..self.registered.len())]).collect();
-            let rays: Vec<Ray> = picks.iter().map(|p| pixel_ray(&self.dataset.train[p.0 as usize].camera, p.1 as usize, self.ndc.as_ref())).collect();
-            let samples = FrozenSamples::march(&self.field.grid, &rays, &self.march, self.cfg.min_sample_weight);
-            groups.push((samples, picks.iter().flat_map(|p| p.2).collect()));
+            let picks: Vec<usize> = (0..l.registered_rays).map(|_| rng.random_range(0..self.registered.len())).collect();
+            let samples = match &self.registered_samples {
+                Some(cached) => cached.subset(&picks),
+                None => {
+                    let rays: Vec<Ray> = picks.iter().map(|&i| self.pixel_ray(self.registered[i].0 as usize, self.registered[i].1 as usize)).collect();
+                    FrozenSamples::march(&self.field.grid, &rays, &self.march, self.cfg.min_sample_weight)
+                }
+            };
+            groups.push((samples, picks.iter().flat_map(|&i| self.registered[i].2).collect()));
         }
         let mut total: Option<Tensor<2>> = None;
         let mut value = 0.0;
@@ -681,6 +695,7 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
             .collect(),
         registration,
         registered,
+        registered_samples: None,
         curve: Vec::new(),
         warnings,
     };
@@ -761,8 +776,19 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
                 point.feature,
                 point.colour
             ));
-            if bar.is_hidden() && ((step + 1) % views == 0) {
-                eprintln!("epoch {}/{} ({}) total {:.4} ref {:.4} feat {:.4} colour {:.4}", epoch + 1, s.image_epochs, point.phase, point.total, point.reference, point.feature, point.colour);
+            if bar.is_hidden() && (step + 1) % (views / 4).max(1) == 0 {
+                eprintln!(
+                    "epoch {}/{} step {}/{total_steps} ({}) total {:.4} ref {:.4} feat {:.4} colour {:.4} ({:.0} s)",
+                    epoch + 1,
+                    s.image_epochs,
+                    step + 1,
+                    point.phase,
+                    point.total,
+                    point.reference,
+                    point.feature,
+                    point.colour,
+                    started.elapsed().as_secs_f64()
+                );
             }
             st.log(point);
             step += 1;
