@@ -14,6 +14,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod data;
 pub mod demo;
+pub mod evaluation;
 pub mod features;
 pub mod grid;
 pub mod imageio;

@@ -151,6 +151,11 @@ pub struct FeatureMaps {
 }
 
 impl FeatureMaps {
+    /// Maps given by hand (tests, other feature extractors).
+    pub fn from_maps(maps: impl IntoIterator<Item = (VggLayer, Tensor<4>)>) -> Self {
+        Self { maps: maps.into_iter().collect() }
+    }
+
     /// The map of `layer`; panics if it was not requested (a programming error).
     pub fn get(&self, layer: VggLayer) -> &Tensor<4> {
         self.maps.get(&layer).unwrap_or_else(|| panic!("feature map {layer} was not requested"))

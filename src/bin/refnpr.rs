@@ -1,11 +1,11 @@
 //! The `refnpr` command line: parse, call the library, print.
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, ensure};
 use clap::{Parser, Subcommand};
 use refnpr::config::TrainConfig;
 use refnpr::data::{self, procedural};
 use refnpr::render_path::{self, PathKind};
-use refnpr::{BackendKind, checkpoint, train};
+use refnpr::{BackendKind, checkpoint, evaluation, train};
 use std::path::PathBuf;
 
 #[derive(Parser)]
@@ -23,9 +23,12 @@ enum Command {
         out: PathBuf,
         #[arg(long)]
         backend: Option<BackendKind>,
-        /// Override the number of training steps.
+        /// Override the number of photoreal training steps.
         #[arg(long)]
         steps: Option<usize>,
+        /// Override the number of stylization image epochs.
+        #[arg(long)]
+        epochs: Option<usize>,
     },
     /// Renderer throughput (rays/s, forward and forward+backward) per backend and resolution.
     Bench {
@@ -150,10 +153,27 @@ enum Command {
     },
     /// PSNR / SSIM of a run's renders against a dataset's test views (e.g. the procedural scene's stylized twin).
     Eval {
-        /// Run folder (or checkpoint file).
+        /// Run folder (or checkpoint file): a photoreal or a stylized run.
+        #[arg(long, alias = "ckpt")]
+        run: PathBuf,
+        /// The stylized run's reference case: stylization metrics (ref_lpips,
+        /// stability, and with --gt the ground-truth PSNRs). Without it: PSNR
+        /// and SSIM of the run's test views.
         #[arg(long)]
-        ckpt: PathBuf,
-        /// Dataset whose test views are the ground truth (default: the run's own).
+        reference: Option<PathBuf>,
+        /// Dataset whose test views are the ground truth (a procedural scene's `stylized/`).
+        #[arg(long)]
+        gt: Option<PathBuf>,
+        /// Restylize from N of the run's own renders and report their PSNR (slow: N stylizations).
+        #[arg(long, default_value_t = 0)]
+        robustness: usize,
+        /// Image epochs of each robustness stylization (default: the run's).
+        #[arg(long)]
+        robustness_epochs: Option<usize>,
+        /// Also write the JSON here.
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// The run's dataset folder, when it moved.
         #[arg(long)]
         data: Option<PathBuf>,
         #[arg(long)]
@@ -226,13 +246,25 @@ fn main() {
 
 fn run() -> Result<()> {
     match Cli::parse().command {
-        Command::Demo { out, backend, steps } => {
+        Command::Demo { out, backend, steps, epochs } => {
             let backend = backend_or_env(backend)?;
-            let m = refnpr::demo::run_demo(&out, backend, steps)?;
+            let r = refnpr::demo::run_demo(&out, backend, &refnpr::demo::DemoOptions { steps, epochs, ..Default::default() })?;
+            let e = &r.eval;
+            let fmt = |v: Option<f32>| v.map(|v| format!("{v:.2} dB")).unwrap_or_else(|| "-".into());
+            println!("demo done in {:.0} s (backend {backend})", r.seconds);
+            println!("  photoreal fit:   {:.2} dB test PSNR ({:.0} s)  orbit: {}", r.photo.test_psnr, r.photo.train_seconds, out.join("orbit/path.gif").display());
+            println!("  reference:       {}", out.join("case/style.png").display());
+            println!("  stylized:        {:.0} s  orbit: {}", r.stylize.total_seconds, out.join("stylized/orbit/path.gif").display());
             println!(
-                "demo done: test PSNR {:.2} dB, SSIM {:.4} in {:.1} s; see {}",
-                m.test_psnr, m.test_ssim, m.train_seconds, out.join("orbit/path.gif").display()
+                "  vs ground truth: {} (photoreal field: {:.2} dB), on surfaces the reference does not see: {} ({:.0}% of the surface)",
+                fmt(e.gt_psnr),
+                r.photo_gt_psnr,
+                fmt(e.gt_psnr_occluded),
+                100.0 * e.occluded_fraction.unwrap_or(0.0)
             );
+            let st: Vec<String> = e.stability.iter().map(|s| format!("{} frame(s) apart {:.4}", s.gap, s.rmse)).collect();
+            println!("  ref_lpips {:.4}; stability (warp RMSE) {}", e.ref_lpips, st.join(", "));
+            println!("  all figures: {}", out.join("eval.json").display());
         }
         Command::Bench { backends, res, rays, repeats, json } => {
             let mut results = Vec::new();
@@ -339,11 +371,25 @@ fn run() -> Result<()> {
             println!("stylized ({}) in {:.1} s: {}", r.method, r.total_seconds, phases.join(", "));
             println!("wrote {}/checkpoint.bin, stylize.json{}", out.display(), if job.render_test { ", test/" } else { "" });
         }
-        Command::Eval { ckpt, data: data_dir, backend } => {
+        Command::Eval { run, reference, gt, robustness, robustness_epochs, out, data: data_dir, backend } => {
             let backend = backend_or_env(backend)?;
-            let (ck, dataset) = checkpoint::load_run(&ckpt, data_dir.as_deref(), &backend.device())?;
-            let r = train::evaluate(&ck.grid, &dataset, &dataset.test, &ck.meta.config, None)?;
-            println!("{}", serde_json::to_string(&serde_json::json!({"psnr": r.psnr, "ssim": r.ssim, "views": r.per_view_psnr.len(), "data": dataset.root}))?);
+            let json = match reference {
+                Some(case) => {
+                    let job = evaluation::EvalJob { run, case, gt, robustness, backend, data: data_dir, robustness_epochs };
+                    serde_json::to_value(evaluation::evaluate_stylization(&job)?)?
+                }
+                None => {
+                    ensure!(robustness == 0, "--robustness needs --reference (the stylized run's case)");
+                    let truth = gt.or(data_dir);
+                    let (ck, dataset) = checkpoint::load_run(&run, truth.as_deref(), &backend.device())?;
+                    let r = train::evaluate(&ck.grid, &dataset, &dataset.test, &ck.meta.config, None)?;
+                    serde_json::json!({"psnr": r.psnr, "ssim": r.ssim, "views": r.per_view_psnr.len(), "data": dataset.root})
+                }
+            };
+            if let Some(path) = out {
+                evaluation::write_json(&path, &json)?;
+            }
+            println!("{}", serde_json::to_string_pretty(&json)?);
         }
         Command::Scene { out, seed, size } => {
             let opts = procedural::SceneOptions { seed, size, ..Default::default() };

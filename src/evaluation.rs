@@ -1,0 +1,341 @@
+//! Stylization metrics (paper section 4.3, supplementary A; SNeRF's
+//! consistency measure), computed from a stylized run and its reference case:
+//! - `ref_lpips`: perceptual distance between each style reference and the
+//!   stylized renders of the 10 render-path views nearest its camera. The
+//!   distance is LPIPS's unweighted "baseline" form (the `lpips` package with
+//!   `lpips=False`) on our VGG16: at relu1_2, relu2_2, relu3_3, relu4_3 and
+//!   relu5_3, channels unit-normalised per position, squared differences
+//!   summed over channels, averaged over positions, summed over layers. It is
+//!   not bit-identical to the paper's LPIPS (learned linear heads on
+//!   torchvision's VGG16), so compare our figures with each other, not with
+//!   the paper's table;
+//! - `gt_psnr`, `gt_psnr_occluded`: PSNR of the stylized test views against a
+//!   ground-truth stylized dataset (the procedural scene's `stylized/`), over
+//!   all pixels and over the surface pixels no reference camera sees;
+//! - `stability`: colour RMSE between render-path frames warped into each
+//!   other with the field's depth (frames 1 and 7 apart), over points visible
+//!   in both;
+//! - `robustness_psnr`: the stylized field's own renders at N path views used
+//!   as new references, stylized again; PSNR between the two fields' renders
+//!   along the path, averaged.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail, ensure};
+use glam::Vec3;
+use serde::Serialize;
+
+use crate::backend::BackendKind;
+use crate::camera::Camera;
+use crate::checkpoint::{self, Checkpoint};
+use crate::metrics;
+use crate::reference::{self, ReferenceCase};
+use crate::render;
+use crate::stylize::config::StylizeConfig;
+use crate::stylize::tcm::Image;
+use crate::stylize::{Method, StylizeJob, run_stylize};
+use crate::vgg::{FeatureMaps, Vgg16, VggLayer};
+
+/// The layers of LPIPS's VGG variant.
+pub const LPIPS_LAYERS: [VggLayer; 5] = [VggLayer::Relu1_2, VggLayer::Relu2_2, VggLayer::Relu3_3, VggLayer::Relu4_3, VggLayer::Relu5_3];
+
+/// Path views per reference for `ref_lpips` (paper: 10).
+pub const REF_LPIPS_VIEWS: usize = 10;
+
+/// Frame gaps of the short- and long-range consistency (SNeRF, StyleRF: 1 and 7).
+pub const STABILITY_GAPS: [usize; 2] = [1, 7];
+
+/// A rendered view with the world point each pixel sees (equation-4 depth;
+/// None = background).
+pub struct SurfaceRender {
+    pub camera: Camera,
+    pub rgb: Vec<f32>,
+    pub points: Vec<Option<Vec3>>,
+}
+
+/// Renders `camera` from `ck` with its surface points (world-space scenes only).
+pub fn render_surface(ck: &Checkpoint, camera: &Camera) -> Result<SurfaceRender> {
+    ensure!(ck.meta.ndc.is_none(), "surface points of a forward-facing (NDC) scene are not supported by this metric");
+    let cfg = &ck.meta.config;
+    let r = render::render_view(&ck.grid, camera, None, &cfg.march, ck.meta.background, cfg.render_chunk);
+    let rays = camera.rays(None);
+    let points = r.threshold_depth.iter().zip(&rays).map(|(d, ray)| d.map(|t| ray.origin + t * ray.dir)).collect();
+    Ok(SurfaceRender { camera: *camera, rgb: r.rgb, points })
+}
+
+/// The pixel of `view` that sees world point `p`, when its own surface there
+/// lies at `p`'s depth within `tolerance` (not occluded, inside the frame).
+fn pixel_seeing(view: &SurfaceRender, p: Vec3, tolerance: f32) -> Option<usize> {
+    let (x, y, z) = view.camera.project(p)?;
+    let (w, h) = (view.camera.intrinsics.width as i64, view.camera.intrinsics.height as i64);
+    let (px, py) = (x.round() as i64, y.round() as i64);
+    if px < 0 || py < 0 || px >= w || py >= h {
+        return None;
+    }
+    let i = (py * w + px) as usize;
+    let q = view.points[i]?;
+    let (_, _, zq) = view.camera.project(q)?;
+    ((z - zq).abs() <= tolerance).then_some(i)
+}
+
+/// For each point: whether any of the `references` sees it.
+pub fn visible_from(points: &[Option<Vec3>], references: &[SurfaceRender], tolerance: f32) -> Vec<bool> {
+    points.iter().map(|p| p.is_some_and(|p| references.iter().any(|r| pixel_seeing(r, p, tolerance).is_some()))).collect()
+}
+
+/// Sum of squared colour differences (over channels) and the number of
+/// pixels, between the pixels of `to` and the pixels of `from` that see the
+/// same surface point.
+pub fn warp_error(from: &SurfaceRender, to: &SurfaceRender, tolerance: f32) -> (f64, usize) {
+    let mut sum = 0.0f64;
+    let mut count = 0;
+    for (i, p) in to.points.iter().enumerate() {
+        let Some(j) = p.and_then(|p| pixel_seeing(from, p, tolerance)) else { continue };
+        sum += (0..3).map(|c| ((to.rgb[i * 3 + c] - from.rgb[j * 3 + c]) as f64).powi(2)).sum::<f64>();
+        count += 1;
+    }
+    (sum, count)
+}
+
+/// PSNR over the pixels where `mask` is true (None when there are none).
+pub fn psnr_masked(a: &[f32], b: &[f32], mask: &[bool]) -> Option<(f64, usize)> {
+    assert_eq!(a.len(), b.len());
+    assert_eq!(a.len(), mask.len() * 3);
+    let mut sum = 0.0f64;
+    let mut n = 0;
+    for (p, &m) in mask.iter().enumerate() {
+        if m {
+            sum += (0..3).map(|c| ((a[p * 3 + c] - b[p * 3 + c]) as f64).powi(2)).sum::<f64>();
+            n += 3;
+        }
+    }
+    (n > 0).then_some((sum, n))
+}
+
+/// LPIPS's baseline distance between two sets of feature maps (see the module notes).
+pub fn normalised_feature_distance(a: &FeatureMaps, b: &FeatureMaps, layers: &[VggLayer]) -> f32 {
+    layers
+        .iter()
+        .map(|&l| {
+            let unit = |t: burn::tensor::Tensor<4>| {
+                let norm = (t.clone() * t.clone()).sum_dim(1).sqrt() + 1e-10;
+                t / norm
+            };
+            let d = unit(a.get(l).clone()) - unit(b.get(l).clone());
+            let [_, _, h, w] = d.dims();
+            crate::tensor_util::scalar((d.clone() * d).sum().reshape([1])) / (h * w) as f32
+        })
+        .sum()
+}
+
+/// `normalised_feature_distance` of two images of the same size, through VGG16.
+pub fn perceptual_distance(vgg: &Vgg16, a: &Image, b: &Image, device: &burn::tensor::Device) -> Result<f32> {
+    ensure!(a.width == b.width && a.height == b.height, "images of {}x{} and {}x{}", a.width, a.height, b.width, b.height);
+    let fa = vgg.features(a.tensor(device), &LPIPS_LAYERS)?;
+    let fb = vgg.features(b.tensor(device), &LPIPS_LAYERS)?;
+    Ok(normalised_feature_distance(&fa, &fb, &LPIPS_LAYERS))
+}
+
+/// Indices of the `k` cameras nearest `to` (camera centres; ties by index).
+pub fn nearest_cameras(cameras: &[Camera], to: &Camera, k: usize) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..cameras.len()).collect();
+    order.sort_by(|&a, &b| cameras[a].position().distance(to.position()).total_cmp(&cameras[b].position().distance(to.position())).then(a.cmp(&b)));
+    order.truncate(k);
+    order
+}
+
+/// Short- and long-range consistency.
+#[derive(Debug, Clone, Serialize)]
+pub struct Stability {
+    pub gap: usize,
+    /// RMSE of colours in [0, 1] over the warped pixels of all frame pairs.
+    pub rmse: f32,
+    pub pixels: usize,
+}
+
+/// What `refnpr eval --reference` writes.
+#[derive(Debug, Clone, Serialize)]
+pub struct StylizationEval {
+    pub run: PathBuf,
+    pub reference: PathBuf,
+    pub ref_lpips: f32,
+    /// The path frames `ref_lpips` used, per reference.
+    pub ref_lpips_frames: Vec<Vec<usize>>,
+    pub gt: Option<PathBuf>,
+    pub gt_psnr: Option<f32>,
+    pub gt_psnr_occluded: Option<f32>,
+    /// Fraction of the test views' surface pixels no reference sees.
+    pub occluded_fraction: Option<f32>,
+    pub stability: Vec<Stability>,
+    pub robustness_psnr: Option<f32>,
+    pub path_frames: usize,
+}
+
+/// What to evaluate.
+pub struct EvalJob {
+    pub run: PathBuf,
+    pub case: PathBuf,
+    pub gt: Option<PathBuf>,
+    pub robustness: usize,
+    pub backend: BackendKind,
+    pub data: Option<PathBuf>,
+    /// Epochs of the robustness re-stylizations (None = the run's own schedule).
+    pub robustness_epochs: Option<usize>,
+}
+
+/// Depth tolerance of the visibility tests: three voxels.
+fn tolerance(ck: &Checkpoint) -> f32 {
+    3.0 * ck.grid.geometry.voxel_size().max_element()
+}
+
+fn image_of(r: &SurfaceRender) -> Image {
+    Image { width: r.camera.intrinsics.width as usize, height: r.camera.intrinsics.height as usize, rgb: r.rgb.clone() }
+}
+
+/// `refnpr eval --run STYLE_RUN --reference CASE`.
+pub fn evaluate_stylization(job: &EvalJob) -> Result<StylizationEval> {
+    let device = job.backend.device();
+    let (ck, dataset) = checkpoint::load_run(&job.run, job.data.as_deref(), &device)?;
+    let case = ReferenceCase::load(&job.case)?;
+    if let Some(m) = case.scene_mismatch(&dataset) {
+        bail!("{m}: the reference case does not belong to the run {}", job.run.display());
+    }
+    let tol = tolerance(&ck);
+    let ref_cams = case.cameras(&dataset)?;
+    let path = dataset.render_path(case.path_frames);
+    eprintln!("rendering {} path frames of {}", path.len(), job.run.display());
+    let frames: Vec<SurfaceRender> = path.iter().map(|c| render_surface(&ck, c)).collect::<Result<_>>()?;
+
+    // Ref-LPIPS.
+    let vgg = Vgg16::load(&device);
+    let mut distances = Vec::new();
+    let mut used = Vec::new();
+    for (spec, cam) in case.references.iter().zip(&ref_cams) {
+        let near = nearest_cameras(&path, cam, REF_LPIPS_VIEWS);
+        let (w, h) = (path[0].intrinsics.width, path[0].intrinsics.height);
+        let (style, _) = reference::read_style(&spec.style, w, h, ck.meta.background)?;
+        let style = Image { width: w as usize, height: h as usize, rgb: style };
+        for &i in &near {
+            distances.push(perceptual_distance(&vgg, &style, &image_of(&frames[i]), &device)?);
+        }
+        used.push(near);
+    }
+    let ref_lpips = distances.iter().sum::<f32>() / distances.len().max(1) as f32;
+
+    // Ground truth.
+    let (mut gt_psnr, mut gt_psnr_occluded, mut occluded_fraction) = (None, None, None);
+    if let Some(gt_dir) = &job.gt {
+        let gt = crate::data::load(gt_dir, &ck.meta.config.data).with_context(|| format!("ground truth {}", gt_dir.display()))?;
+        ensure!(gt.test.len() == dataset.test.len(), "ground truth {} has {} test views, the run's dataset {}", gt_dir.display(), gt.test.len(), dataset.test.len());
+        let refs: Vec<SurfaceRender> = ref_cams.iter().map(|c| render_surface(&ck, c)).collect::<Result<_>>()?;
+        let (mut all, mut occ, mut surface, mut hidden) = ((0.0f64, 0usize), (0.0f64, 0usize), 0usize, 0usize);
+        for (v, t) in gt.test.iter().enumerate() {
+            ensure!(t.camera.intrinsics.width == dataset.test[v].camera.intrinsics.width, "ground truth test view {v} has another size");
+            let r = render_surface(&ck, &t.camera)?;
+            let everywhere = vec![true; r.points.len()];
+            let (s, n) = psnr_masked(&r.rgb, &t.rgb, &everywhere).expect("non-empty view");
+            all = (all.0 + s, all.1 + n);
+            let seen = visible_from(&r.points, &refs, tol);
+            let unseen: Vec<bool> = r.points.iter().zip(&seen).map(|(p, s)| p.is_some() && !s).collect();
+            surface += r.points.iter().filter(|p| p.is_some()).count();
+            hidden += unseen.iter().filter(|u| **u).count();
+            if let Some((s, n)) = psnr_masked(&r.rgb, &t.rgb, &unseen) {
+                occ = (occ.0 + s, occ.1 + n);
+            }
+        }
+        gt_psnr = Some(metrics::psnr_from_mse((all.0 / all.1 as f64) as f32));
+        gt_psnr_occluded = (occ.1 > 0).then(|| metrics::psnr_from_mse((occ.0 / occ.1 as f64) as f32));
+        occluded_fraction = Some(hidden as f32 / surface.max(1) as f32);
+    }
+
+    // Stability.
+    let stability = STABILITY_GAPS
+        .iter()
+        .filter(|&&g| g < frames.len())
+        .map(|&gap| {
+            let (mut sum, mut n) = (0.0, 0);
+            for i in 0..frames.len() - gap {
+                let (s, c) = warp_error(&frames[i], &frames[i + gap], tol);
+                sum += s;
+                n += c;
+            }
+            Stability { gap, rmse: ((sum / (3 * n).max(1) as f64) as f32).sqrt(), pixels: n }
+        })
+        .collect();
+
+    // Robustness.
+    let robustness_psnr = if job.robustness > 0 { Some(robustness(job, &ck, &frames, case.path_frames)?) } else { None };
+
+    Ok(StylizationEval {
+        run: job.run.clone(),
+        reference: job.case.clone(),
+        ref_lpips,
+        ref_lpips_frames: used,
+        gt: job.gt.clone(),
+        gt_psnr,
+        gt_psnr_occluded,
+        occluded_fraction,
+        stability,
+        robustness_psnr,
+        path_frames: path.len(),
+    })
+}
+
+/// Restylizes from `job.robustness` of the run's own path renders and
+/// compares the path renders of each result with the run's.
+fn robustness(job: &EvalJob, ck: &Checkpoint, frames: &[SurfaceRender], path_frames: usize) -> Result<f32> {
+    let report: serde_json::Value = {
+        let p = job.run.join("stylize.json");
+        let text = std::fs::read_to_string(&p).with_context(|| format!("robustness needs the stylization's {}", p.display()))?;
+        serde_json::from_str(&text).with_context(|| format!("malformed {}", p.display()))?
+    };
+    let photo = PathBuf::from(report["photo"].as_str().context("stylize.json names no photo run")?);
+    let mut config: StylizeConfig = serde_json::from_value(report["config"].clone()).context("stylize.json's config")?;
+    if let Some(e) = job.robustness_epochs {
+        config.schedule.image_epochs = e;
+    }
+    let work = job.run.join("robustness");
+    let mut psnrs = Vec::new();
+    for k in 0..job.robustness {
+        let frame = k * frames.len() / job.robustness;
+        let case_dir = work.join(format!("case_{frame}"));
+        std::fs::create_dir_all(&case_dir).with_context(|| format!("cannot create {}", case_dir.display()))?;
+        let cam = frames[frame].camera;
+        crate::imageio::save_png(&case_dir.join("style.png"), cam.intrinsics.width, cam.intrinsics.height, &frames[frame].rgb)?;
+        std::fs::write(
+            case_dir.join(reference::CASE_TOML),
+            format!("# the stylized field's own render at path frame {frame} (refnpr eval --robustness)\npath_frames = {path_frames}\n\n[[reference]]\nstyle = \"style.png\"\nview = \"path:{frame}\"\n"),
+        )?;
+        let out = work.join(format!("stylized_{frame}"));
+        eprintln!("robustness {}/{}: restylizing from path frame {frame}", k + 1, job.robustness);
+        run_stylize(&StylizeJob {
+            photo: photo.clone(),
+            case: case_dir,
+            out: out.clone(),
+            config: config.clone(),
+            method: Method::RefNpr,
+            backend: job.backend,
+            style: None,
+            data: job.data.clone(),
+            render_test: false,
+        })?;
+        let again = checkpoint::load_with(&out, &ck.grid.device(), false)?;
+        let cfg = &again.meta.config;
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for f in frames {
+            let r = render::render_view(&again.grid, &f.camera, None, &cfg.march, again.meta.background, cfg.render_chunk);
+            sum += r.rgb.iter().zip(&f.rgb).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>();
+            n += r.rgb.len();
+        }
+        psnrs.push(metrics::psnr_from_mse((sum / n as f64) as f32));
+    }
+    Ok(psnrs.iter().sum::<f32>() / psnrs.len() as f32)
+}
+
+/// Writes `value` as pretty JSON to `path`.
+pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    std::fs::write(path, serde_json::to_string_pretty(value)?).with_context(|| format!("cannot write {}", path.display()))
+}
