@@ -19,6 +19,7 @@ pub mod features;
 pub mod grid;
 pub mod imageio;
 pub mod metrics;
+pub mod paint;
 pub mod render;
 pub mod reference;
 pub mod register;

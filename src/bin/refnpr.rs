@@ -179,6 +179,15 @@ enum Command {
         #[arg(long)]
         backend: Option<BackendKind>,
     },
+    /// A quick painterly repaint of an image (e.g. a reference case's content.png) to try stylization without painting.
+    Paint {
+        #[arg(long)]
+        input: PathBuf,
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+    },
     /// Writes the built-in procedural scene (Blender layout, with depth, ids and a stylized twin).
     Scene {
         #[arg(long)]
@@ -390,6 +399,14 @@ fn run() -> Result<()> {
                 evaluation::write_json(&path, &json)?;
             }
             println!("{}", serde_json::to_string_pretty(&json)?);
+        }
+        Command::Paint { input, out, seed } => {
+            let img = image::open(&input).with_context(|| format!("cannot read image {}", input.display()))?.to_rgba32f();
+            let (w, h) = (img.width(), img.height());
+            let rgb = data::composite_over(&img, [1.0; 3]);
+            let painted = refnpr::paint::painterly(&rgb, w as usize, h as usize, seed);
+            refnpr::imageio::save_png(&out, w, h, &painted)?;
+            println!("wrote {}", out.display());
         }
         Command::Scene { out, seed, size } => {
             let opts = procedural::SceneOptions { seed, size, ..Default::default() };
