@@ -134,6 +134,18 @@ pub fn to_ndc(r: Ray, p: &NdcParams) -> Ray {
     Ray { origin: o_ndc, dir: d_ndc.normalize(), view_dir: r.dir }
 }
 
+/// The world point of an NDC point (the inverse of the warp `to_ndc`
+/// applies to points); None at or beyond the far end (z_ndc -> 1 is infinity).
+pub fn from_ndc(q: Vec3, p: &NdcParams) -> Option<Vec3> {
+    if q.z >= 1.0 - 1e-4 {
+        return None;
+    }
+    let z = 2.0 * p.near / (q.z - 1.0);
+    let ax = -2.0 * p.focal / p.width;
+    let ay = -2.0 * p.focal / p.height;
+    Some(Vec3::new(q.x * z / ax, q.y * z / ay, z))
+}
+
 /// NeRF's `viewmatrix`: a camera-to-world frame looking along `z` (the
 /// camera's +z is the backwards axis) with `up` as the approximate up vector.
 pub fn view_matrix(z: Vec3, up: Vec3, pos: Vec3) -> Mat4 {

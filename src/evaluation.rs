@@ -26,7 +26,7 @@ use glam::Vec3;
 use serde::Serialize;
 
 use crate::backend::BackendKind;
-use crate::camera::Camera;
+use crate::camera::{Camera, from_ndc};
 use crate::checkpoint::{self, Checkpoint};
 use crate::metrics;
 use crate::reference::{self, ReferenceCase};
@@ -53,19 +53,39 @@ pub struct SurfaceRender {
     pub points: Vec<Option<Vec3>>,
 }
 
-/// Renders `camera` from `ck` with its surface points (world-space scenes only).
+/// Renders `camera` from `ck` with its surface points in world space
+/// (forward-facing scenes: marched in NDC, points mapped back).
 pub fn render_surface(ck: &Checkpoint, camera: &Camera) -> Result<SurfaceRender> {
-    ensure!(ck.meta.ndc.is_none(), "surface points of a forward-facing (NDC) scene are not supported by this metric");
     let cfg = &ck.meta.config;
-    let r = render::render_view(&ck.grid, camera, None, &cfg.march, ck.meta.background, cfg.render_chunk);
-    let rays = camera.rays(None);
-    let points = r.threshold_depth.iter().zip(&rays).map(|(d, ray)| d.map(|t| ray.origin + t * ray.dir)).collect();
+    let ndc = ck.meta.ndc.as_ref();
+    let r = render::render_view(&ck.grid, camera, ndc, &cfg.march, ck.meta.background, cfg.render_chunk);
+    let rays = camera.rays(ndc);
+    let points = r
+        .threshold_depth
+        .iter()
+        .zip(&rays)
+        .map(|(d, ray)| {
+            let p = ray.origin + (*d)? * ray.dir;
+            match ndc {
+                Some(n) => from_ndc(p, n),
+                None => Some(p),
+            }
+        })
+        .collect();
     Ok(SurfaceRender { camera: *camera, rgb: r.rgb, points })
+}
+
+/// How far apart two depths may be and still be the same surface:
+/// `absolute + relative * depth` (world units).
+#[derive(Debug, Clone, Copy)]
+pub struct Tolerance {
+    pub absolute: f32,
+    pub relative: f32,
 }
 
 /// The pixel of `view` that sees world point `p`, when its own surface there
 /// lies at `p`'s depth within `tolerance` (not occluded, inside the frame).
-fn pixel_seeing(view: &SurfaceRender, p: Vec3, tolerance: f32) -> Option<usize> {
+fn pixel_seeing(view: &SurfaceRender, p: Vec3, tolerance: Tolerance) -> Option<usize> {
     let (x, y, z) = view.camera.project(p)?;
     let (w, h) = (view.camera.intrinsics.width as i64, view.camera.intrinsics.height as i64);
     let (px, py) = (x.round() as i64, y.round() as i64);
@@ -75,18 +95,18 @@ fn pixel_seeing(view: &SurfaceRender, p: Vec3, tolerance: f32) -> Option<usize> 
     let i = (py * w + px) as usize;
     let q = view.points[i]?;
     let (_, _, zq) = view.camera.project(q)?;
-    ((z - zq).abs() <= tolerance).then_some(i)
+    ((z - zq).abs() <= tolerance.absolute + tolerance.relative * z).then_some(i)
 }
 
 /// For each point: whether any of the `references` sees it.
-pub fn visible_from(points: &[Option<Vec3>], references: &[SurfaceRender], tolerance: f32) -> Vec<bool> {
+pub fn visible_from(points: &[Option<Vec3>], references: &[SurfaceRender], tolerance: Tolerance) -> Vec<bool> {
     points.iter().map(|p| p.is_some_and(|p| references.iter().any(|r| pixel_seeing(r, p, tolerance).is_some()))).collect()
 }
 
 /// Sum of squared colour differences (over channels) and the number of
 /// pixels, between the pixels of `to` and the pixels of `from` that see the
 /// same surface point.
-pub fn warp_error(from: &SurfaceRender, to: &SurfaceRender, tolerance: f32) -> (f64, usize) {
+pub fn warp_error(from: &SurfaceRender, to: &SurfaceRender, tolerance: Tolerance) -> (f64, usize) {
     let mut sum = 0.0f64;
     let mut count = 0;
     for (i, p) in to.points.iter().enumerate() {
@@ -183,9 +203,13 @@ pub struct EvalJob {
     pub robustness_epochs: Option<usize>,
 }
 
-/// Depth tolerance of the visibility tests: three voxels.
-fn tolerance(ck: &Checkpoint) -> f32 {
-    3.0 * ck.grid.geometry.voxel_size().max_element()
+/// Depth tolerance of the visibility tests: three voxels; in forward-facing
+/// (NDC) scenes, whose voxels grow with depth in world units, 3 % of the depth.
+pub fn tolerance(ck: &Checkpoint) -> Tolerance {
+    match ck.meta.ndc {
+        Some(_) => Tolerance { absolute: 0.0, relative: 0.03 },
+        None => Tolerance { absolute: 3.0 * ck.grid.geometry.voxel_size().max_element(), relative: 0.0 },
+    }
 }
 
 fn image_of(r: &SurfaceRender) -> Image {
@@ -323,7 +347,7 @@ fn robustness(job: &EvalJob, ck: &Checkpoint, frames: &[SurfaceRender], path_fra
         let cfg = &again.meta.config;
         let (mut sum, mut n) = (0.0f64, 0usize);
         for f in frames {
-            let r = render::render_view(&again.grid, &f.camera, None, &cfg.march, again.meta.background, cfg.render_chunk);
+            let r = render::render_view(&again.grid, &f.camera, again.meta.ndc.as_ref(), &cfg.march, again.meta.background, cfg.render_chunk);
             sum += r.rgb.iter().zip(&f.rgb).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>();
             n += r.rgb.len();
         }

@@ -5,7 +5,7 @@ mod common;
 
 use glam::{Mat4, Vec3};
 use refnpr::camera::{Camera, Intrinsics, look_at};
-use refnpr::evaluation::{self, SurfaceRender};
+use refnpr::evaluation::{self, SurfaceRender, Tolerance};
 use refnpr::stylize::tcm::Image;
 use refnpr::tensor_util::floats;
 use refnpr::vgg::{FeatureMaps, Vgg16, VggLayer};
@@ -70,26 +70,28 @@ fn plane_view(camera: Camera, colour: &dyn Fn(Vec3) -> [f32; 3]) -> SurfaceRende
     SurfaceRender { camera, rgb, points }
 }
 
+const TOL: Tolerance = Tolerance { absolute: 0.05, relative: 0.0 };
+
 #[test]
 fn visibility_and_warping_follow_the_geometry() {
     let reference = plane_view(camera(Vec3::new(0.0, 0.0, 3.0), 24), &|_| [0.5; 3]);
     let on_plane = Some(Vec3::new(0.2, -0.1, 0.0));
     let behind_plane = Some(Vec3::new(0.2, -0.1, -0.5));
     let outside = Some(Vec3::new(30.0, 0.0, 0.0));
-    let seen = evaluation::visible_from(&[on_plane, behind_plane, outside, None], std::slice::from_ref(&reference), 0.05);
+    let seen = evaluation::visible_from(&[on_plane, behind_plane, outside, None], std::slice::from_ref(&reference), TOL);
     assert_eq!(seen, vec![true, false, false, false]);
 
     // A view-independent texture warps without error between two views of the plane ...
     let texture = |p: Vec3| [(p.x * 3.0).sin() * 0.5 + 0.5, (p.y * 5.0).cos() * 0.5 + 0.5, 0.3];
     let a = plane_view(camera(Vec3::new(0.3, 0.1, 3.0), 32), &texture);
     let b = plane_view(camera(Vec3::new(-0.2, 0.3, 2.8), 32), &texture);
-    let (sum, n) = evaluation::warp_error(&a, &b, 0.05);
+    let (sum, n) = evaluation::warp_error(&a, &b, TOL);
     assert!(n > 500, "{n}");
     // (nearest-pixel lookup: a small residual from rounding only)
     assert!(sum / (3 * n) as f64 <= 2e-3, "{}", sum / (3 * n) as f64);
     // ... and with a known error when one view's colours are offset by 0.2.
     let shifted = plane_view(b.camera, &|p| texture(p).map(|c| c + 0.2));
-    let (sum2, n2) = evaluation::warp_error(&a, &shifted, 0.05);
+    let (sum2, n2) = evaluation::warp_error(&a, &shifted, TOL);
     assert_eq!(n, n2);
     let rmse = (sum2 / (3 * n2) as f64).sqrt();
     assert!((rmse - 0.2).abs() < 0.03, "{rmse}");
@@ -100,4 +102,24 @@ fn nearest_cameras_are_sorted_by_distance() {
     let cams: Vec<Camera> = [5.0f32, 1.0, 3.0, 2.0].iter().map(|&x| Camera::new(Intrinsics::from_fov_x(8, 8, 0.9), Mat4::from_translation(Vec3::new(x, 0.0, 0.0)))).collect();
     let to = Camera::new(Intrinsics::from_fov_x(8, 8, 0.9), Mat4::from_translation(Vec3::new(0.0, 0.0, 0.0)));
     assert_eq!(evaluation::nearest_cameras(&cams, &to, 3), vec![1, 3, 2]);
+}
+
+#[test]
+fn ndc_points_map_back_onto_their_world_ray() {
+    use refnpr::camera::{NdcParams, Ray, from_ndc, to_ndc};
+    let p = NdcParams { width: 40.0, height: 30.0, focal: 35.0, near: 1.0 };
+    let dir = Vec3::new(0.1, -0.05, -1.0).normalize();
+    let ray = Ray { origin: Vec3::new(0.2, 0.1, 0.0), dir, view_dir: dir };
+    let n = to_ndc(ray, &p);
+    for t in [0.0f32, 0.3, 0.9, 1.5] {
+        let w = from_ndc(n.origin + t * n.dir, &p).expect("in front of the far end");
+        // On the world ray: w = origin + s * dir for some s >= 0.
+        let s = (w - ray.origin).dot(dir);
+        assert!((ray.origin + s * dir - w).length() < 1e-3 * (1.0 + s), "t {t}: {w:?} is off the ray");
+        assert!(s > 0.0);
+        // NDC z = -1 is the near plane z = -near.
+        if t == 0.0 {
+            assert!((w.z + p.near).abs() < 1e-4, "{w:?}");
+        }
+    }
 }
