@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # The test suite on every backend (the README's test command).
-#   flex:    everything (unit tests, renderer, datasets, training, CLI)
-#   ndarray: renderer, grid, VGG16, and the stylization losses / TCM / deferred back-propagation
+#   flex:    everything (unit tests, renderer, datasets, training, stylization, evaluation, demo, CLI)
+#   ndarray: renderer, grid, VGG16, the stylization losses / TCM / deferred back-propagation, the metrics
 #   wgpu:    the same plus training, through Mesa's software Vulkan when no GPU is present
-#   (the end-to-end stylization runs on flex only: VGG on lavapipe or ndarray is 10-100x slower)
+#   (end-to-end stylization and the demo run on flex only: VGG on lavapipe or ndarray is 10-100x slower)
 #   real data (../shared/data: lego, fern): loaders and a short fit, when that folder exists
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -15,12 +15,12 @@ REFNPR_BACKEND=flex cargo test --all-targets
 
 STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input)
 
-echo "== ndarray: renderer, grid, VGG16, stylization units"
-REFNPR_BACKEND=ndarray cargo test --test renderer --test vgg --lib
+echo "== ndarray: renderer, grid, VGG16, stylization units, metrics"
+REFNPR_BACKEND=ndarray cargo test --test renderer --test vgg --test evaluation --lib
 REFNPR_BACKEND=ndarray cargo test --test stylize -- "${STYLIZE_UNITS[@]}"
 
-echo "== wgpu: renderer, training, VGG16, stylization units"
-REFNPR_BACKEND=wgpu cargo test --test renderer --test training --test vgg
+echo "== wgpu: renderer, training, VGG16, stylization units, metrics"
+REFNPR_BACKEND=wgpu cargo test --test renderer --test training --test vgg --test evaluation
 REFNPR_BACKEND=wgpu cargo test --test stylize -- "${STYLIZE_UNITS[@]}"
 
 DATA="${REFNPR_SHARED_DATA:-../shared/data}"

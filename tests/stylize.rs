@@ -406,3 +406,28 @@ fn arf_baseline_lowers_its_matching_loss() {
     let b = checkpoint::load_with(&out, &d, false).unwrap();
     assert_eq!(to_vec(a.grid.density.clone()), to_vec(b.grid.density.clone()), "density changed");
 }
+
+/// Each ablation config of scripts/compare.sh parses and turns off exactly
+/// the one thing its name says.
+#[test]
+fn ablation_configs_each_change_one_switch() {
+    let defaults = StylizeConfig::default();
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/ablations");
+    let mut seen = 0;
+    for entry in std::fs::read_dir(&dir).unwrap() {
+        let path = entry.unwrap().path();
+        let c = StylizeConfig::from_file(&path).unwrap_or_else(|e| panic!("{}: {e:#}", path.display()));
+        let (a, d) = (&c.ablation, &defaults.ablation);
+        let changed = [
+            a.use_reference_loss != d.use_reference_loss,
+            a.reference_rays_only != d.reference_rays_only,
+            a.use_feature_loss != d.use_feature_loss,
+            a.use_colour_loss != d.use_colour_loss,
+            a.smooth_update != d.smooth_update,
+        ];
+        assert_eq!(changed.iter().filter(|c| **c).count(), 1, "{}", path.display());
+        assert_eq!(StylizeConfig { ablation: defaults.ablation.clone(), ..c.clone() }, defaults, "{} changes more than an ablation switch", path.display());
+        seen += 1;
+    }
+    assert_eq!(seen, 5);
+}

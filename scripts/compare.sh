@@ -1,0 +1,80 @@
+#!/usr/bin/env bash
+# The paper's comparison and ablations on one scene:
+#   scripts/compare.sh procedural [OUT]   the demo scene, scored against its stylized twin
+#   scripts/compare.sh lego [OUT]         ../shared/data/nerf_synthetic/lego
+#   scripts/compare.sh fern [OUT]         ../shared/data/nerf_llff_data/fern
+# Rows: Ref-NPR, ARF, and Ref-NPR without L_ref / with reference rays only /
+# without L_feat / without L_color / without the smooth update. Reference:
+# training view 0 (procedural: the stylized twin's view, an exact repaint;
+# real scenes: `refnpr paint` over the content render). Existing runs in OUT
+# are reused, so an interrupted comparison resumes. EPOCHS=N shortens every
+# stylization; BACKEND picks the backend (default flex). Writes OUT/table.md.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+scene=${1:?usage: scripts/compare.sh procedural|lego|fern [OUT]}
+out=${2:-compare-$scene}
+backend=${BACKEND:-flex}
+shared=${REFNPR_SHARED_DATA:-../shared/data}
+mkdir -p "$out"
+cargo build --quiet
+bin=target/debug/refnpr
+epochs=()
+[ -n "${EPOCHS:-}" ] && epochs=(--epochs "$EPOCHS")
+
+gt=()
+case "$scene" in
+  procedural)
+    [ -d "$out/scene" ] || $bin scene --out "$out/scene"
+    data="$out/scene"
+    train_config=(--config configs/demo.toml)
+    gt=(--gt "$out/scene/stylized")
+    ;;
+  lego) data="$shared/nerf_synthetic/lego"; train_config=() ;;
+  fern) data="$shared/nerf_llff_data/fern"; train_config=() ;;
+  *) echo "unknown scene $scene (procedural, lego or fern)" >&2; exit 2 ;;
+esac
+
+[ -f "$out/photo/checkpoint.bin" ] || $bin train --data "$data" --out "$out/photo" --backend "$backend" "${train_config[@]}"
+
+if [ ! -f "$out/case/style.png" ]; then
+  if [ "$scene" = procedural ]; then
+    mkdir -p "$out/case"
+    cp assets/cases/demo_repaint/reference.toml "$out/case/"
+    cp "$out/scene/stylized/train/r_0.png" "$out/case/style.png"
+  else
+    $bin reference --ckpt "$out/photo" --view train:0 --out "$out/case"
+    $bin paint --input "$out/case/content.png" --out "$out/case/style.png" --seed 7
+  fi
+fi
+
+rows=(refnpr arf no_reference reference_rays_only no_feature no_colour no_smooth)
+for row in "${rows[@]}"; do
+  run="$out/$row"
+  if [ ! -f "$run/stylize.json" ]; then
+    case "$row" in
+      refnpr) extra=() ;;
+      arf) extra=(--method arf) ;;
+      *) extra=(--config "configs/ablations/$row.toml") ;;
+    esac
+    echo "== $row" >&2
+    $bin stylize --photo "$out/photo" --reference "$out/case" --out "$run" --backend "$backend" --no-render "${extra[@]}" "${epochs[@]}"
+  fi
+  [ -f "$run/eval.json" ] || $bin eval --run "$run" --reference "$out/case" "${gt[@]}" --backend "$backend" --out "$run/eval.json" > /dev/null
+done
+
+python3 - "$out" "${rows[@]}" <<'EOF'
+import json, sys
+out, rows = sys.argv[1], sys.argv[2:]
+names = {"refnpr": "Ref-NPR", "arf": "ARF", "no_reference": "Ref-NPR w/o L_ref", "reference_rays_only": "Ref-NPR, reference rays only",
+         "no_feature": "Ref-NPR w/o L_feat", "no_colour": "Ref-NPR w/o L_color", "no_smooth": "Ref-NPR w/o smooth update"}
+fmt = lambda v, d=2: "-" if v is None else f"{v:.{d}f}"
+lines = ["| method | gt_psnr | gt_psnr_occluded | ref_lpips | stability (1 / 7 frames) | time |", "| --- | --- | --- | --- | --- | --- |"]
+for r in rows:
+    e = json.load(open(f"{out}/{r}/eval.json"))
+    s = json.load(open(f"{out}/{r}/stylize.json"))
+    st = " / ".join(fmt(x["rmse"], 4) for x in e["stability"])
+    lines.append(f"| {names[r]} | {fmt(e['gt_psnr'])} | {fmt(e['gt_psnr_occluded'])} | {fmt(e['ref_lpips'], 4)} | {st} | {s['total_seconds'] / 60:.1f} min |")
+table = "\n".join(lines) + "\n"
+open(f"{out}/table.md", "w").write(table)
+print(table)
+EOF
