@@ -151,7 +151,7 @@ enum Command {
         #[arg(long)]
         no_render: bool,
     },
-    /// PSNR / SSIM of a run's renders against a dataset's test views (e.g. the procedural scene's stylized twin).
+    /// Stylization metrics of a stylized run (with --reference), or PSNR / SSIM of a run's test views.
     Eval {
         /// Run folder (or checkpoint file): a photoreal or a stylized run.
         #[arg(long, alias = "ckpt")]

@@ -134,54 +134,6 @@ impl FrozenSamples {
     }
 }
 
-/// Renumbers grid rows into a compact local range (first seen = 0, 1, ...),
-/// so a chunk's autodiff leaf holds only the rows it touches. The mark
-/// array is kept between calls and reset only where it was set.
-pub struct LocalRows {
-    mark: Vec<i32>,
-}
-
-impl LocalRows {
-    pub fn new(num_rows: usize) -> Self {
-        Self { mark: vec![-1; num_rows] }
-    }
-
-    /// Rewrites `rows` to local indices; returns the grid row of each local index.
-    pub fn localise(&mut self, rows: &mut [i32]) -> Vec<i32> {
-        let mut touched = Vec::new();
-        self.renumber(rows, &mut touched);
-        self.reset(&touched);
-        touched
-    }
-
-    /// The same over several lists sharing one numbering.
-    pub fn localise_all(&mut self, lists: &mut [Vec<i32>]) -> Vec<i32> {
-        let mut touched = Vec::new();
-        for l in lists.iter_mut() {
-            self.renumber(l, &mut touched);
-        }
-        self.reset(&touched);
-        touched
-    }
-
-    fn renumber(&mut self, rows: &mut [i32], touched: &mut Vec<i32>) {
-        for r in rows.iter_mut() {
-            let m = &mut self.mark[*r as usize];
-            if *m < 0 {
-                *m = touched.len() as i32;
-                touched.push(*r);
-            }
-            *r = *m;
-        }
-    }
-
-    fn reset(&mut self, touched: &[i32]) {
-        for &r in touched {
-            self.mark[r as usize] = -1;
-        }
-    }
-}
-
 /// `FrozenSamples` uploaded to a device.
 pub struct FrozenTensors {
     pub num_rays: usize,
