@@ -21,13 +21,19 @@ pub fn demo_config() -> Result<TrainConfig> {
     TrainConfig::from_toml_str(include_str!("../configs/demo.toml"), &TrainConfig::for_kind(DatasetKind::Blender), "configs/demo.toml")
 }
 
+/// The demo's stylization config (configs/demo_stylize.toml, compiled in):
+/// the defaults with a shorter schedule.
+pub fn demo_stylize_config() -> Result<StylizeConfig> {
+    StylizeConfig::from_toml_str(include_str!("../configs/demo_stylize.toml"), "configs/demo_stylize.toml")
+}
+
 /// What the demo runs (defaults: the full demo).
 #[derive(Debug, Clone, Default)]
 pub struct DemoOptions {
     pub scene: procedural::SceneOptions,
     /// Photoreal training steps (default: configs/demo.toml).
     pub steps: Option<usize>,
-    /// Stylization image epochs (default: configs/stylize.toml).
+    /// Stylization image epochs (default: configs/demo_stylize.toml).
     pub epochs: Option<usize>,
     /// Training view whose stylized twin is the reference.
     pub reference_view: usize,
@@ -68,9 +74,10 @@ pub fn run_demo(out: &Path, backend: BackendKind, opts: &DemoOptions) -> Result<
     eprintln!("[1/5] writing the procedural scene to {}", scene.display());
     procedural::write_scene(&scene, &opts.scene)?;
     let mut cfg = demo_config()?;
+    let demo_steps = cfg.optim.steps;
     if let Some(s) = opts.steps {
         cfg.optim.steps = s;
-        cfg.grid.upsample_steps = cfg.grid.upsample_steps.iter().map(|&u| u * s / 1500).filter(|&u| u > 0 && u < s).collect();
+        cfg.grid.upsample_steps = cfg.grid.upsample_steps.iter().map(|&u| u * s / demo_steps).filter(|&u| u > 0 && u < s).collect();
         cfg.grid.upsample_res.truncate(cfg.grid.upsample_steps.len());
         cfg.validate()?;
     }
@@ -86,7 +93,7 @@ pub fn run_demo(out: &Path, backend: BackendKind, opts: &DemoOptions) -> Result<
     let case = write_twin_case(&scene, opts.reference_view, &out.join("case"))?;
 
     let stylized = out.join("stylized");
-    let mut config = StylizeConfig::default();
+    let mut config = demo_stylize_config()?;
     if let Some(e) = opts.epochs {
         config.schedule.image_epochs = e;
     }

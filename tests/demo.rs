@@ -27,3 +27,16 @@ fn the_demo_pipeline_stylizes_the_scene_towards_its_twin() {
     let written: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("eval.json")).unwrap()).unwrap();
     assert_eq!(written["gt_psnr"].as_f64().map(|v| v as f32), e.gt_psnr);
 }
+
+#[test]
+fn the_demo_configs_only_shorten_the_defaults() {
+    // The demo must stay the method as shipped, only shorter: the stylization
+    // config differs from the defaults in the number of epochs alone.
+    let demo = refnpr::demo::demo_stylize_config().expect("configs/demo_stylize.toml parses");
+    let mut expected = refnpr::stylize::config::StylizeConfig::default();
+    assert!(demo.schedule.image_epochs < expected.schedule.image_epochs);
+    expected.schedule.image_epochs = demo.schedule.image_epochs;
+    assert_eq!(demo, expected);
+    let fit = refnpr::demo::demo_config().expect("configs/demo.toml parses");
+    assert!(fit.grid.upsample_steps.iter().all(|&s| s < fit.optim.steps));
+}
