@@ -1,12 +1,17 @@
 #!/usr/bin/env python3
-"""Builds the README gallery (assets/gallery/) from a demo run.
+"""Builds the README gallery (assets/gallery/).
 
+From a demo run:
     cargo run -- demo --out demo-out
     python3 -m pip install pillow && python3 scripts/make_gallery.py demo-out
-
-Writes: demo_reference.png (photo at the reference view | the reference),
+writes demo_reference.png (photo at the reference view | the reference),
 demo_novel_views.png (photoreal orbit frames above the stylized ones at the
 same cameras), and the two orbit GIFs.
+
+From two stylizations of one real scene (Ref-NPR and ARF, same case):
+    python3 scripts/make_gallery.py --scene lego CASE REFNPR_RUN ARF_RUN
+writes lego_reference.png (content | reference), lego_test_views.png
+(Ref-NPR test renders above ARF's at the same cameras) and both test GIFs.
 """
 import shutil
 import sys
@@ -44,10 +49,26 @@ def enlarge(im):
     return im.resize((im.width * SCALE, im.height * SCALE), Image.NEAREST)
 
 
+def scene_gallery(name, case, refnpr, arf, out):
+    reference = row([on_white(case / "content.png"), on_white(case / "style.png")])
+    reference.save(out / f"{name}_reference.png")
+    frames = sorted((refnpr / "test/rgb").glob("*.png"))
+    picks = [frames[i * len(frames) // 4].name for i in range(4)]
+    top = row([on_white(refnpr / "test/rgb" / f) for f in picks])
+    bottom = row([on_white(arf / "test/rgb" / f) for f in picks])
+    column([top, bottom]).save(out / f"{name}_test_views.png")
+    shutil.copy(refnpr / "test/path.gif", out / f"{name}_refnpr.gif")
+    shutil.copy(arf / "test/path.gif", out / f"{name}_arf.gif")
+
+
 def main():
-    demo = Path(sys.argv[1] if len(sys.argv) > 1 else "demo-out")
     out = Path(__file__).resolve().parent.parent / "assets" / "gallery"
     out.mkdir(parents=True, exist_ok=True)
+    if len(sys.argv) == 6 and sys.argv[1] == "--scene":
+        scene_gallery(sys.argv[2], *(Path(a) for a in sys.argv[3:]), out)
+        print(f"gallery written to {out}")
+        return
+    demo = Path(sys.argv[1] if len(sys.argv) > 1 else "demo-out")
     reference = row([on_white(demo / "scene/train/r_0.png"), on_white(demo / "case/style.png")])
     enlarge(reference).save(out / "demo_reference.png")
     photo = row([on_white(demo / f"orbit/rgb/{i:04}.png") for i in FRAMES])
