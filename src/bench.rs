@@ -87,10 +87,9 @@ pub fn renderer_throughput(backend: BackendKind, res: usize, rays: usize, repeat
         // Forward + backward as a training step does it (touched rows as leaves).
         let t = Instant::now();
         let b = render::generate_samples(&grid, batch_rays, &params);
-        let mut mark = Vec::new();
-        let rows = crate::train::touched_rows(grid.num_rows(), &b.corner_rows, &mut mark);
-        let bt = BatchTensors::new(&b, Some(&|r: i32| mark[r as usize]), &device);
-        let idx = indices(rows, &device);
+        let subset = crate::train::RowSubset::of(grid.num_rows(), &b.corner_rows);
+        let bt = BatchTensors::new(&b, Some(&|r: i32| subset.local(r)), &device);
+        let idx = indices(subset.rows().to_vec(), &device);
         let ld = dens.clone().select(0, idx.clone()).autodiff().require_grad();
         let ls = shv.clone().select(0, idx).autodiff().require_grad();
         let out = render::composite(ld.clone(), ls.clone(), &bt, [1.0; 3]);

@@ -128,9 +128,15 @@ impl TrainConfig {
             DatasetKind::Llff => {
                 c.data.downscale = 8;
                 c.grid.initial_res = [128, 128, 32];
-                c.grid.upsample_steps = vec![250];
-                c.grid.upsample_res = vec![[256, 256, 64]];
-                c.optim.steps = 2600;
+                c.grid.upsample_steps = vec![250, 900];
+                c.grid.upsample_res = vec![[256, 256, 64], [512, 384, 64]];
+                c.optim.steps = 3000;
+                // Each voxel is touched a few hundred times in a run this
+                // short (Plenoxels runs ~50x more rays): a higher, slower-decaying
+                // rate fits more (README, "Photorealistic fitting").
+                c.optim.lr_density_final = 5.0;
+                c.optim.lr_sh = 0.03;
+                c.optim.lr_sh_final = 6e-3;
                 c.optim.tv_density = 5e-4;
                 c.optim.tv_sh = 5e-3;
             }

@@ -123,22 +123,24 @@ fn ray_step(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> f32 {
     p.step / (ray.dir / grid.geometry.voxel_size()).length()
 }
 
-/// Ray marching with empty-space skipping: the lattice is cut into 8³
-/// blocks, and a block is empty when no lattice point of its 9³ closure is
-/// active, so every sample whose trilinear base lies in it has 8 empty
-/// corners and would be dropped anyway: skipping is exact (the same samples
-/// at the same positions). Built in O(active points); build one per grid
-/// state and reuse it for many rays.
-pub struct Marcher<'a> {
-    grid: &'a RadianceGrid,
+/// Which 8³ blocks of the lattice are empty: a block is empty when no
+/// lattice point of its 9³ closure is active, so every sample whose
+/// trilinear base lies in it has 8 empty corners and would be dropped
+/// anyway. It depends only on which rows exist, so it stays valid until the
+/// grid is pruned or upsampled: a training run builds it once per grid
+/// (building costs O(active points), millions on real scenes).
+#[derive(Debug, Clone)]
+pub struct BlockOccupancy {
+    res: [usize; 3],
+    num_rows: usize,
     blocks: [usize; 3],
     occupied: Vec<bool>,
 }
 
 const BLOCK: usize = 8;
 
-impl<'a> Marcher<'a> {
-    pub fn new(grid: &'a RadianceGrid) -> Self {
+impl BlockOccupancy {
+    pub fn of(grid: &RadianceGrid) -> Self {
         let geo = &grid.geometry;
         let blocks = geo.res.map(|r| r.div_ceil(BLOCK).max(1));
         let mut occupied = vec![false; blocks[0] * blocks[1] * blocks[2]];
@@ -158,14 +160,41 @@ impl<'a> Marcher<'a> {
                 }
             }
         }
-        Self { grid, blocks, occupied }
+        Self { res: geo.res, num_rows: grid.num_rows(), blocks, occupied }
+    }
+
+    /// Whether this was plausibly built for `grid` (same lattice, same number of rows).
+    pub fn matches(&self, grid: &RadianceGrid) -> bool {
+        self.res == grid.geometry.res && self.num_rows == grid.num_rows()
+    }
+}
+
+/// Ray marching with empty-space skipping over the blocks of a
+/// `BlockOccupancy`: skipping is exact (the same samples at the same
+/// positions as a march that visits every position). Build one per grid
+/// state and reuse it for many rays.
+pub struct Marcher<'a> {
+    grid: &'a RadianceGrid,
+    occupancy: std::borrow::Cow<'a, BlockOccupancy>,
+}
+
+impl<'a> Marcher<'a> {
+    pub fn new(grid: &'a RadianceGrid) -> Self {
+        Self { grid, occupancy: std::borrow::Cow::Owned(BlockOccupancy::of(grid)) }
+    }
+
+    /// A marcher on an occupancy built earlier for this very grid state.
+    pub fn with_occupancy(grid: &'a RadianceGrid, occupancy: &'a BlockOccupancy) -> Self {
+        assert!(occupancy.matches(grid), "block occupancy built for another grid state");
+        Self { grid, occupancy: std::borrow::Cow::Borrowed(occupancy) }
     }
 
     /// When sample `k` (at `t`) lies in an empty block: the index of the
     /// first sample at or after the ray's exit from that block.
     fn skip_empty(&self, a: glam::Vec3, d: glam::Vec3, t0: f32, step: f32, t: f32, k: usize) -> Option<usize> {
         let b = self.grid.geometry.trilinear_base(a + t * d).map(|v| v / BLOCK);
-        if self.occupied[(b[0] * self.blocks[1] + b[1]) * self.blocks[2] + b[2]] {
+        let occ = &*self.occupancy;
+        if occ.occupied[(b[0] * occ.blocks[1] + b[1]) * occ.blocks[2] + b[2]] {
             return None;
         }
         let mut exit = f32::INFINITY;
@@ -455,8 +484,9 @@ pub fn render_rays(
     let mut depth = Vec::with_capacity(rays.len());
     let mut tdepth = Vec::with_capacity(rays.len());
     let mut opacity = Vec::with_capacity(rays.len());
+    let marcher = Marcher::new(grid);
     for part in rays.chunks(chunk.max(1)) {
-        let batch = generate_samples(grid, part, params);
+        let batch = marcher.samples(part, params);
         let bt = BatchTensors::new(&batch, None, &device);
         let out = composite(dens.clone(), sh.clone(), &bt, background);
         rgb.extend(to_vec(out.rgb));
@@ -501,8 +531,10 @@ mod tests {
         let device = crate::backend::BackendKind::Flex.device();
         let grid = crate::bench::sphere_grid(48, &device);
         let skipping = Marcher::new(&grid);
-        let full = Marcher { grid: &grid, blocks: skipping.blocks, occupied: vec![true; skipping.occupied.len()] };
-        assert!(skipping.occupied.iter().any(|o| !o), "the sphere grid has empty blocks");
+        let mut everything = BlockOccupancy::of(&grid);
+        assert!(everything.occupied.iter().any(|o| !o), "the sphere grid has empty blocks");
+        everything.occupied.fill(true);
+        let full = Marcher::with_occupancy(&grid, &everything);
         let cam = Camera::new(Intrinsics::from_fov_x(40, 40, 0.9), look_at(Vec3::new(2.2, 1.0, 0.8), Vec3::ZERO, Vec3::Z));
         let rays = cam.rays(None);
         let params = MarchParams::default();

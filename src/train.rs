@@ -57,6 +57,10 @@ pub struct Trainer {
     rays: Vec<Ray>,
     colours: Vec<[f32; 3]>,
     background: [f32; 3],
+    /// Empty-space skipping structure of the current grid (None: rebuild).
+    occupancy: Option<render::BlockOccupancy>,
+    /// The rows of the current step (reused between steps).
+    subset: RowSubset,
 }
 
 /// Numbers of one optimisation step.
@@ -67,67 +71,108 @@ pub struct StepStats {
     pub rows: usize,
 }
 
-/// The rows a step works on: local index per grid row, and the TV neighbours.
-struct LocalRows {
+/// A subset of grid rows (those a step touches) and the map grid row ->
+/// local index. Kept between steps: starting a new subset resets only the
+/// entries the last one set, so its cost follows the subset (a few hundred
+/// thousand rows), not the grid (millions).
+#[derive(Debug, Default)]
+pub struct RowSubset {
+    local_of: Vec<i32>,
     rows: Vec<i32>,
-    /// For each of the first `num_core` local rows: local index of its +x, +y, +z neighbour (itself if none).
+}
+
+impl RowSubset {
+    /// Empties the subset for a grid of `num_rows` rows.
+    pub fn clear(&mut self, num_rows: usize) {
+        if self.local_of.len() == num_rows {
+            for &r in &self.rows {
+                self.local_of[r as usize] = -1;
+            }
+        } else {
+            self.local_of = vec![-1; num_rows];
+        }
+        self.rows.clear();
+    }
+
+    /// The subset of the distinct rows in `rows`, in first-seen order.
+    pub fn of(num_rows: usize, rows: &[i32]) -> Self {
+        let mut s = Self::default();
+        s.reset_to(num_rows, rows);
+        s
+    }
+
+    /// Clears, then adds the distinct rows of `rows` in first-seen order.
+    pub fn reset_to(&mut self, num_rows: usize, rows: &[i32]) {
+        self.clear(num_rows);
+        for &r in rows {
+            self.insert(r);
+        }
+    }
+
+    /// Local index of `row`, adding it at the end if new.
+    pub fn insert(&mut self, row: i32) -> i32 {
+        let slot = &mut self.local_of[row as usize];
+        if *slot < 0 {
+            *slot = self.rows.len() as i32;
+            self.rows.push(row);
+        }
+        *slot
+    }
+
+    /// Local index of `row` (-1 when not in the subset).
+    pub fn local(&self, row: i32) -> i32 {
+        self.local_of[row as usize]
+    }
+
+    /// The grid rows, in local order.
+    pub fn rows(&self) -> &[i32] {
+        &self.rows
+    }
+
+    /// Exchanges the local indices `i` and `j`.
+    fn swap(&mut self, i: usize, j: usize) {
+        self.rows.swap(i, j);
+        self.local_of[self.rows[i] as usize] = i as i32;
+        self.local_of[self.rows[j] as usize] = j as i32;
+    }
+}
+
+/// The TV terms of a step: for each of the first `num_core` local rows, the
+/// local index of its +x, +y, +z neighbour (itself if none).
+struct TvNeighbours {
     neighbours: [Vec<i32>; 3],
     num_core: usize,
 }
 
-/// The distinct grid rows in `corner_rows`, in first-seen order; `mark`
-/// becomes grid row -> local index (-1 where untouched).
-pub fn touched_rows(num_rows: usize, corner_rows: &[i32], mark: &mut Vec<i32>) -> Vec<i32> {
-    mark.clear();
-    mark.resize(num_rows, -1);
-    let mut rows = Vec::new();
-    for &r in corner_rows {
-        if mark[r as usize] < 0 {
-            mark[r as usize] = rows.len() as i32;
-            rows.push(r);
-        }
-    }
-    rows
-}
-
-/// `tv_fraction` of the touched rows (a deterministic random subset, as
-/// Plenoxels regularises a random subset of voxels each step) get TV terms.
-fn local_rows(grid: &RadianceGrid, corner_rows: &[i32], mark: &mut Vec<i32>, tv_fraction: f32, rng: &mut ChaCha8Rng) -> LocalRows {
-    let mut rows = touched_rows(grid.num_rows(), corner_rows, mark);
-    // Move a random tv_fraction of the rows to the front: those are the TV voxels.
-    let num_core = ((rows.len() as f32 * tv_fraction).ceil() as usize).min(rows.len());
+/// Fills `subset` with the rows `corner_rows` touch, then moves a random
+/// `tv_fraction` of them to the front (a deterministic random subset, as
+/// Plenoxels regularises a random subset of voxels each step): those get TV
+/// terms, and their neighbours join the subset.
+fn step_rows(grid: &RadianceGrid, corner_rows: &[i32], subset: &mut RowSubset, tv_fraction: f32, rng: &mut ChaCha8Rng) -> TvNeighbours {
+    subset.reset_to(grid.num_rows(), corner_rows);
+    let touched = subset.rows().len();
+    let num_core = ((touched as f32 * tv_fraction).ceil() as usize).min(touched);
     for i in 0..num_core {
-        let j = rng.random_range(i..rows.len());
-        rows.swap(i, j);
-        mark[rows[i] as usize] = i as i32;
-        mark[rows[j] as usize] = j as i32;
+        let j = rng.random_range(i..touched);
+        subset.swap(i, j);
     }
     let geo = grid.geometry;
     let mut neighbours: [Vec<i32>; 3] = [Vec::with_capacity(num_core), Vec::with_capacity(num_core), Vec::with_capacity(num_core)];
     for li in 0..num_core {
-        let [i, j, k] = geo.unflat(grid.coords[rows[li] as usize] as usize);
+        let [i, j, k] = geo.unflat(grid.coords[subset.rows()[li] as usize] as usize);
         let ijk = [i, j, k];
         for (axis, list) in neighbours.iter_mut().enumerate() {
             let mut n = ijk;
             n[axis] += 1;
             let nb = if n[axis] < geo.res[axis] { grid.links[geo.flat(n[0], n[1], n[2])] } else { -1 };
-            let local = if nb < 0 {
-                li as i32
-            } else if mark[nb as usize] >= 0 {
-                mark[nb as usize]
-            } else {
-                mark[nb as usize] = rows.len() as i32;
-                rows.push(nb);
-                rows.len() as i32 - 1
-            };
-            list.push(local);
+            list.push(if nb < 0 { li as i32 } else { subset.insert(nb) });
         }
     }
-    LocalRows { rows, neighbours, num_core }
+    TvNeighbours { neighbours, num_core }
 }
 
 /// Total variation sum_voxels sum_channels sqrt(dx^2 + dy^2 + dz^2 + eps) / voxels.
-fn total_variation(values: Tensor<2>, lr: &LocalRows, device: &Device) -> Tensor<1> {
+fn total_variation(values: Tensor<2>, lr: &TvNeighbours, device: &Device) -> Tensor<1> {
     let n = lr.num_core;
     let core = values.clone().narrow(0, 0, n);
     let mut sq = None;
@@ -175,6 +220,8 @@ impl Trainer {
             rays,
             colours,
             background: dataset.background,
+            occupancy: None,
+            subset: RowSubset::default(),
         }
     }
 
@@ -198,6 +245,7 @@ impl Trainer {
             self.grid.prune(g.prune_threshold);
             self.grid.upsample(res)?;
             self.state = RmsState::zeros(&self.grid);
+            self.occupancy = None;
             return Ok(true);
         }
         Ok(false)
@@ -215,11 +263,12 @@ impl Trainer {
         let rays: Vec<Ray> = picks.iter().map(|&i| self.rays[i]).collect();
         let target: Vec<f32> = picks.iter().flat_map(|&i| self.colours[i]).collect();
 
-        let batch = render::generate_samples(&self.grid, &rays, &cfg.march);
-        let mut mark = Vec::new();
-        let local = local_rows(&self.grid, &batch.corner_rows, &mut mark, cfg.optim.tv_fraction, &mut rng);
-        let rows_t = indices(local.rows.clone(), &plain);
-        let bt = BatchTensors::new(&batch, Some(&|r: i32| mark[r as usize]), &plain);
+        let occupancy = self.occupancy.get_or_insert_with(|| render::BlockOccupancy::of(&self.grid));
+        let batch = render::Marcher::with_occupancy(&self.grid, occupancy).samples(&rays, &cfg.march);
+        let local = step_rows(&self.grid, &batch.corner_rows, &mut self.subset, cfg.optim.tv_fraction, &mut rng);
+        let rows_t = indices(self.subset.rows().to_vec(), &plain);
+        let subset = &self.subset;
+        let bt = BatchTensors::new(&batch, Some(&|r: i32| subset.local(r)), &plain);
 
         let ld = self.grid.density.clone().select(0, rows_t.clone()).autodiff().require_grad();
         let ls = self.grid.sh.clone().select(0, rows_t.clone()).autodiff().require_grad();
@@ -240,14 +289,14 @@ impl Trainer {
         if let (Some(gd), Some(gs)) = (ld.grad(&grads), ls.grad(&grads)) {
             let beta = cfg.optim.rmsprop_beta;
             let eps = cfg.optim.eps;
-            let new_d = rmsprop_rows(&mut self.grid.density, &mut self.state.density, &rows_t, ld.inner(), gd, lr_d, beta, eps);
-            rmsprop_rows(&mut self.grid.sh, &mut self.state.sh, &rows_t, ls.inner(), gs, lr_s, beta, eps);
-            for (r, v) in local.rows.iter().zip(to_vec(new_d)) {
+            let new_d = ld.inner() + rmsprop_rows(&mut self.grid.density, &mut self.state.density, &rows_t, gd, lr_d, beta, eps);
+            rmsprop_rows(&mut self.grid.sh, &mut self.state.sh, &rows_t, gs, lr_s, beta, eps);
+            for (r, v) in self.subset.rows().iter().zip(to_vec(new_d)) {
                 self.grid.density_cpu[*r as usize] = v;
             }
         }
         self.step += 1;
-        Ok(StepStats { mse: mse_value, samples: batch.num_samples(), rows: local.rows.len() })
+        Ok(StepStats { mse: mse_value, samples: batch.num_samples(), rows: self.subset.rows().len() })
     }
 
     /// The metadata a checkpoint of this run carries.
@@ -272,13 +321,12 @@ impl Trainer {
 }
 
 /// Lazy RMSprop on the given rows: v = b v + (1-b) g^2; x -= lr g / (sqrt(v) + eps).
-/// Returns the rows' new values.
+/// Returns the rows' update (what was added to them).
 #[allow(clippy::too_many_arguments)]
 fn rmsprop_rows(
     param: &mut Tensor<2>,
     avg: &mut Tensor<2>,
     rows: &burn::tensor::Tensor<1, burn::tensor::Int>,
-    old: Tensor<2>,
     grad: Tensor<2>,
     lr: f32,
     beta: f32,
@@ -294,7 +342,7 @@ fn rmsprop_rows(
     *avg = crate::tensor_util::assign_rows(a, rows.clone(), v_new - v_old, IndexingUpdateOp::Add);
     let p = std::mem::replace(param, Tensor::zeros([1, 1], &device));
     *param = crate::tensor_util::assign_rows(p, rows.clone(), update.clone(), IndexingUpdateOp::Add);
-    old + update
+    update
 }
 
 /// Rays and colours of every pixel of the given views.
@@ -429,4 +477,29 @@ pub fn progress_bar(len: u64, pos: u64) -> ProgressBar {
     );
     bar.set_position(pos);
     bar
+}
+
+#[cfg(test)]
+mod tests {
+    use super::RowSubset;
+
+    /// A reused subset must behave as a fresh one: rows of the previous
+    /// subset are forgotten, local indices follow first-seen order.
+    #[test]
+    fn a_reused_row_subset_forgets_the_previous_rows() {
+        let mut s = RowSubset::default();
+        s.reset_to(10, &[7, 3, 7, 9, 3]);
+        assert_eq!(s.rows(), &[7, 3, 9]);
+        assert_eq!((s.local(7), s.local(3), s.local(9), s.local(0)), (0, 1, 2, -1));
+        s.reset_to(10, &[9, 1]);
+        assert_eq!(s.rows(), &[9, 1]);
+        assert_eq!((s.local(9), s.local(1), s.local(7), s.local(3)), (0, 1, -1, -1));
+        assert_eq!(s.insert(4), 2);
+        assert_eq!(s.insert(9), 0);
+        // A grid of another size starts from scratch.
+        s.reset_to(5, &[4]);
+        assert_eq!((s.rows(), s.local(4), s.local(1)), (&[4][..], 0, -1));
+        let fresh = RowSubset::of(10, &[2, 2, 5]);
+        assert_eq!(fresh.rows(), &[2, 5]);
+    }
 }

@@ -43,7 +43,7 @@ use crate::grid::{RadianceGrid, available_memory_bytes};
 use crate::reference::{self, ReferenceCase};
 use crate::registration::{RegistrationFile, register_case};
 use crate::tensor_util::{assign_rows, floats, indices, scalar, select_rows};
-use crate::train::{peak_rss_mb, progress_bar, touched_rows};
+use crate::train::{RowSubset, peak_rss_mb, progress_bar};
 use crate::vgg::{Vgg16, VggLayer};
 use config::StylizeConfig;
 use frozen::FrozenSamples;
@@ -187,12 +187,11 @@ impl StyleField {
         let core: Vec<i32> = (0..count).map(|_| rng.random_range(0..n) as i32).collect();
         // Leaf = the rows involved (the picked rows and their neighbours), local indices.
         let lists: Vec<Vec<i32>> = std::iter::once(core.clone()).chain(self.neighbours.iter().map(|nb| core.iter().map(|&r| nb[r as usize]).collect())).collect();
-        let mut mark = Vec::new();
-        let touched = touched_rows(n, &lists.concat(), &mut mark);
+        let subset = RowSubset::of(n, &lists.concat());
         let device = self.grid.device();
-        let rows = indices(touched, &device);
+        let rows = indices(subset.rows().to_vec(), &device);
         let leaf = select_rows(self.grid.sh.clone(), rows.clone()).autodiff().require_grad();
-        let mut lists = lists.into_iter().map(|l| select_rows(leaf.clone(), indices(l.iter().map(|&r| mark[r as usize]).collect(), &device)));
+        let mut lists = lists.into_iter().map(|l| select_rows(leaf.clone(), indices(l.iter().map(|&r| subset.local(r)).collect(), &device)));
         let centre = lists.next().expect("the picked rows");
         let sq = lists.map(|nb| (nb - centre.clone()).powi_scalar(2)).reduce(|a, b| a + b).expect("three axes");
         let tv = (sq.sum_dim(1) + 1e-9).sqrt().sum() * (weight / count as f32);
@@ -210,17 +209,17 @@ impl StyleField {
 pub fn chunked_gradient(sh: &Tensor<2>, samples: &FrozenSamples, background: [f32; 3], chunk: usize, loss_of: &dyn Fn(Tensor<2>, usize, usize) -> Tensor<1>) -> Tensor<2> {
     let device = sh.device();
     let mut total = Tensor::zeros(sh.dims(), &device);
-    let mut mark = Vec::new();
+    let mut subset = RowSubset::default();
     let mut start = 0;
     while start < samples.num_rays {
         let len = chunk.max(1).min(samples.num_rays - start);
         let mut part = samples.range(start, len);
-        let touched = touched_rows(sh.dims()[0], &part.corner_rows, &mut mark);
+        subset.reset_to(sh.dims()[0], &part.corner_rows);
         for r in part.corner_rows.iter_mut() {
-            *r = mark[*r as usize];
+            *r = subset.local(*r);
         }
         let ft = part.upload(&device);
-        let rows = indices(touched, &device);
+        let rows = indices(subset.rows().to_vec(), &device);
         let leaf = select_rows(sh.clone(), rows.clone()).autodiff().require_grad();
         let rgb = frozen::render_colour(leaf.clone(), &ft, background);
         let loss = loss_of(rgb, start, len);
