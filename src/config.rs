@@ -127,9 +127,11 @@ impl TrainConfig {
             }
             DatasetKind::Llff => {
                 c.data.downscale = 8;
-                c.grid.initial_res = [128, 128, 32];
-                c.grid.upsample_steps = vec![250, 900];
-                c.grid.upsample_res = vec![[256, 256, 64], [512, 384, 64]];
+                // The NDC box is wider than [-1, 1] in x and y (about 3 x 2.7
+                // on fern, see `data::llff`): ~128 voxels per NDC unit across.
+                c.grid.initial_res = [192, 176, 32];
+                c.grid.upsample_steps = vec![250];
+                c.grid.upsample_res = vec![[384, 352, 64]];
                 c.optim.steps = 3000;
                 // Each voxel is touched a few hundred times in a run this
                 // short (Plenoxels runs ~50x more rays): a higher, slower-decaying

@@ -97,6 +97,7 @@ fn llff_loader_holds_out_every_eighth_image_and_uses_ndc() {
     assert!(avg.abs_diff_eq(Mat4::IDENTITY, 1e-4), "{avg:?}");
     let (near, _far) = ds.near_far.unwrap();
     assert!((near - 1.0 / 0.75).abs() < 1e-4);
+    common::assert_ndc_rays_inside_box(&ds);
     assert_eq!(ds.render_path(120).len(), 120);
 }
 

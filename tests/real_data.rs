@@ -46,6 +46,10 @@ fn fern_loads_recentred_with_ndc_and_a_spiral() {
     let k = ds.train[0].camera.intrinsics;
     assert_eq!((k.width, k.height), (504, 378));
     assert!(ds.ndc.is_some());
+    // The other cameras' border rays leave the average camera's [-1, 1]
+    // sideways; the grid's box must hold them (measured: |x| up to 1.44).
+    common::assert_ndc_rays_inside_box(&ds);
+    assert!(ds.bbox_max.x > 1.3 && ds.bbox_min.x < -1.3, "{:?} {:?}", ds.bbox_min, ds.bbox_max);
     let path = ds.render_path(120);
     assert_eq!(path.len(), 120);
     // The spiral stays near the capture cameras and looks the same way.

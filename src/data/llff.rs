@@ -6,7 +6,7 @@
 //! held out for testing, and rays are warped to NDC (near plane 1).
 
 use super::{Dataset, DatasetKind, LoadOptions, View, check_pose, check_sizes, npy, read_rgb};
-use crate::camera::{Camera, Intrinsics, NdcParams, average_pose};
+use crate::camera::{Camera, Intrinsics, NdcParams, average_pose, to_ndc};
 use anyhow::{Context, Result, bail};
 use glam::{Mat4, Vec3};
 use rayon::prelude::*;
@@ -50,6 +50,46 @@ fn image_folder(dir: &Path, factor: u32) -> Result<(PathBuf, u32)> {
         }
     }
     bail!("{}: no image folder (looked for images_{factor}/ and images/)", dir.display())
+}
+
+/// Margin added on each side of the rays' x/y extent, as a fraction of it.
+const NDC_BOX_MARGIN: f32 = 0.02;
+
+/// The NDC box the grid covers: z spans [-1, 1] (near plane to infinity);
+/// x and y span what the rays of every view (train and test) reach, at least
+/// [-1, 1]. The NDC warp is defined by the average camera, so the border rays
+/// of the other cameras leave [-1, 1] sideways (on fern up to |x| = 1.44,
+/// and 12-40% of each view's rays): a [-1, 1] box would cut them off and
+/// render the background there. Plenoxels widens x/y by a fixed factor
+/// (about 1.5); measuring the extent adapts it to the capture.
+fn ndc_box(views: &[View], ndc: &NdcParams) -> (Vec3, Vec3) {
+    let mut lo = Vec3::new(-1.0, -1.0, -1.0);
+    let mut hi = Vec3::new(1.0, 1.0, 1.0);
+    let ax = -2.0 * ndc.focal / ndc.width;
+    let ay = -2.0 * ndc.focal / ndc.height;
+    for v in views {
+        let (w, h) = (v.camera.intrinsics.width, v.camera.intrinsics.height);
+        // x_ndc and y_ndc at either end of a ray are projective functions of
+        // the pixel position, so their extremes lie on the image border.
+        let border = (0..w).flat_map(|x| [(x, 0), (x, h - 1)]).chain((0..h).flat_map(|y| [(0, y), (w - 1, y)]));
+        for (x, y) in border {
+            let r = v.camera.ray(x as f32, y as f32);
+            let near = to_ndc(r, ndc).origin;
+            // The far end (z_ndc = 1, infinitely far) depends on the direction only.
+            let far = Vec3::new(ax * r.dir.x / r.dir.z, ay * r.dir.y / r.dir.z, 1.0);
+            for p in [near, far] {
+                if p.is_finite() {
+                    lo = lo.min(p);
+                    hi = hi.max(p);
+                }
+            }
+        }
+    }
+    let margin = (hi - lo) * NDC_BOX_MARGIN;
+    (
+        Vec3::new(lo.x - margin.x, lo.y - margin.y, -1.0),
+        Vec3::new(hi.x + margin.x, hi.y + margin.y, 1.0),
+    )
 }
 
 pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
@@ -125,6 +165,8 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
             folder.display(), intr.width, intr.height, full_w, full_h
         );
     }
+    let ndc = NdcParams { width: intr.width as f32, height: intr.height as f32, focal: intr.fx, near: 1.0 };
+    let (bbox_min, bbox_max) = ndc_box(&views, &ndc);
     let mut train = Vec::new();
     let mut test = Vec::new();
     for (i, v) in views.into_iter().enumerate() {
@@ -137,9 +179,9 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         val: Vec::new(),
         test,
         background: opts.background,
-        bbox_min: Vec3::splat(-1.0),
-        bbox_max: Vec3::splat(1.0),
-        ndc: Some(NdcParams { width: intr.width as f32, height: intr.height as f32, focal: intr.fx, near: 1.0 }),
+        bbox_min,
+        bbox_max,
+        ndc: Some(ndc),
         near_far: Some((min_near * scale, max_far * scale)),
     })
 }

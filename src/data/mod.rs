@@ -69,7 +69,8 @@ pub struct Dataset {
     pub val: Vec<View>,
     pub test: Vec<View>,
     pub background: [f32; 3],
-    /// The box the radiance grid covers (NDC [-1,1]^3 for LLFF).
+    /// The box the radiance grid covers (for LLFF: NDC, z in [-1, 1], x and y
+    /// as far as the views' rays reach).
     pub bbox_min: Vec3,
     pub bbox_max: Vec3,
     /// Present for forward-facing scenes: rays are warped to NDC.

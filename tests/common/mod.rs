@@ -45,3 +45,22 @@ impl Drop for TempDir {
 pub fn tol(cpu: f32) -> f32 {
     if backend() == BackendKind::Wgpu { cpu * 10.0 } else { cpu }
 }
+
+/// Every pixel ray of every view of an NDC dataset stays inside the grid's
+/// box from the near plane (z = -1) to infinity (z = 1).
+pub fn assert_ndc_rays_inside_box(ds: &refnpr::data::Dataset) {
+    let ndc = ds.ndc.expect("an NDC dataset");
+    let eps = 1e-4;
+    for v in ds.train.iter().chain(&ds.test) {
+        for r in v.camera.rays(Some(&ndc)) {
+            let far = r.origin + r.dir * ((1.0 - r.origin.z) / r.dir.z);
+            for p in [r.origin, far] {
+                assert!(
+                    p.cmpge(ds.bbox_min - eps).all() && p.cmple(ds.bbox_max + eps).all(),
+                    "{}: NDC point {p:?} outside the box {:?}..{:?}",
+                    v.name, ds.bbox_min, ds.bbox_max
+                );
+            }
+        }
+    }
+}
