@@ -97,6 +97,9 @@ fn llff_loader_holds_out_every_eighth_image_and_uses_ndc() {
     assert!(avg.abs_diff_eq(Mat4::IDENTITY, 1e-4), "{avg:?}");
     let (near, _far) = ds.near_far.unwrap();
     assert!((near - 1.0 / 0.75).abs() < 1e-4);
+    // The cameras are translated sideways, so their rays leave the average
+    // camera's [-1, 1] at the near plane: the box must have grown to hold them.
+    assert!(ds.bbox_min.x < -1.0 && ds.bbox_max.x > 1.0, "{:?} {:?}", ds.bbox_min, ds.bbox_max);
     common::assert_ndc_rays_inside_box(&ds);
     assert_eq!(ds.render_path(120).len(), 120);
 }

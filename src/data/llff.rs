@@ -54,6 +54,8 @@ fn image_folder(dir: &Path, factor: u32) -> Result<(PathBuf, u32)> {
 
 /// Margin added on each side of the rays' x/y extent, as a fraction of it.
 const NDC_BOX_MARGIN: f32 = 0.02;
+/// The largest |x| and |y| of the NDC box (fern needs 1.5).
+const NDC_BOX_MAX: f32 = 3.0;
 
 /// The NDC box the grid covers: z spans [-1, 1] (near plane to infinity);
 /// x and y span what the rays of every view (train and test) reach, at least
@@ -62,7 +64,7 @@ const NDC_BOX_MARGIN: f32 = 0.02;
 /// and 12-40% of each view's rays): a [-1, 1] box would cut them off and
 /// render the background there. Plenoxels widens x/y by a fixed factor
 /// (about 1.5); measuring the extent adapts it to the capture.
-fn ndc_box(views: &[View], ndc: &NdcParams) -> (Vec3, Vec3) {
+fn ndc_box(views: &[View], ndc: &NdcParams, source: &Path) -> (Vec3, Vec3) {
     let mut lo = Vec3::new(-1.0, -1.0, -1.0);
     let mut hi = Vec3::new(1.0, 1.0, 1.0);
     let ax = -2.0 * ndc.focal / ndc.width;
@@ -86,10 +88,19 @@ fn ndc_box(views: &[View], ndc: &NdcParams) -> (Vec3, Vec3) {
         }
     }
     let margin = (hi - lo) * NDC_BOX_MARGIN;
-    (
-        Vec3::new(lo.x - margin.x, lo.y - margin.y, -1.0),
-        Vec3::new(hi.x + margin.x, hi.y + margin.y, 1.0),
-    )
+    let (lo, hi) = (lo - margin, hi + margin);
+    // A camera looking far off the average direction would stretch the box
+    // (and the voxels) without bound: cap it, and say so.
+    let cap = Vec3::new(NDC_BOX_MAX, NDC_BOX_MAX, 1.0);
+    let (lo_c, hi_c) = (lo.max(-cap), hi.min(cap));
+    if lo_c != lo.with_z(-1.0) || hi_c != hi.with_z(1.0) {
+        eprintln!(
+            "warning: {}: some views' rays reach NDC x/y {:?}..{:?}; the grid covers only up to ±{NDC_BOX_MAX} \
+             (those rays render the background beyond it)",
+            source.display(), lo.truncate(), hi.truncate()
+        );
+    }
+    (lo_c.with_z(-1.0), hi_c.with_z(1.0))
 }
 
 pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
@@ -166,7 +177,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         );
     }
     let ndc = NdcParams { width: intr.width as f32, height: intr.height as f32, focal: intr.fx, near: 1.0 };
-    let (bbox_min, bbox_max) = ndc_box(&views, &ndc);
+    let (bbox_min, bbox_max) = ndc_box(&views, &ndc, &npy_path);
     let mut train = Vec::new();
     let mut test = Vec::new();
     for (i, v) in views.into_iter().enumerate() {
