@@ -67,19 +67,17 @@ const NDC_BOX_MAX: f32 = 3.0;
 fn ndc_box(views: &[View], ndc: &NdcParams, source: &Path) -> (Vec3, Vec3) {
     let mut lo = Vec3::new(-1.0, -1.0, -1.0);
     let mut hi = Vec3::new(1.0, 1.0, 1.0);
-    let ax = -2.0 * ndc.focal / ndc.width;
-    let ay = -2.0 * ndc.focal / ndc.height;
     for v in views {
         let (w, h) = (v.camera.intrinsics.width, v.camera.intrinsics.height);
         // x_ndc and y_ndc at either end of a ray are projective functions of
         // the pixel position, so their extremes lie on the image border.
         let border = (0..w).flat_map(|x| [(x, 0), (x, h - 1)]).chain((0..h).flat_map(|y| [(0, y), (w - 1, y)]));
         for (x, y) in border {
-            let r = v.camera.ray(x as f32, y as f32);
-            let near = to_ndc(r, ndc).origin;
-            // The far end (z_ndc = 1, infinitely far) depends on the direction only.
-            let far = Vec3::new(ax * r.dir.x / r.dir.z, ay * r.dir.y / r.dir.z, 1.0);
-            for p in [near, far] {
+            let r = to_ndc(v.camera.ray(x as f32, y as f32), ndc);
+            // The ray starts on the near plane (z = -1) and reaches
+            // infinity at z = 1.
+            let far = r.origin + r.dir * ((1.0 - r.origin.z) / r.dir.z);
+            for p in [r.origin, far] {
                 if p.is_finite() {
                     lo = lo.min(p);
                     hi = hi.max(p);
@@ -91,16 +89,15 @@ fn ndc_box(views: &[View], ndc: &NdcParams, source: &Path) -> (Vec3, Vec3) {
     let (lo, hi) = (lo - margin, hi + margin);
     // A camera looking far off the average direction would stretch the box
     // (and the voxels) without bound: cap it, and say so.
-    let cap = Vec3::new(NDC_BOX_MAX, NDC_BOX_MAX, 1.0);
-    let (lo_c, hi_c) = (lo.max(-cap), hi.min(cap));
-    if lo_c != lo.with_z(-1.0) || hi_c != hi.with_z(1.0) {
+    if lo.x < -NDC_BOX_MAX || lo.y < -NDC_BOX_MAX || hi.x > NDC_BOX_MAX || hi.y > NDC_BOX_MAX {
         eprintln!(
             "warning: {}: some views' rays reach NDC x/y {:?}..{:?}; the grid covers only up to ±{NDC_BOX_MAX} \
              (those rays render the background beyond it)",
             source.display(), lo.truncate(), hi.truncate()
         );
     }
-    (lo_c.with_z(-1.0), hi_c.with_z(1.0))
+    let cap = Vec3::splat(NDC_BOX_MAX);
+    (lo.max(-cap).with_z(-1.0), hi.min(cap).with_z(1.0))
 }
 
 pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
