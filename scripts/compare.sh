@@ -8,7 +8,11 @@
 # training view 0 (procedural: the stylized twin's view, an exact repaint;
 # real scenes: `refnpr paint` over the content render). Existing runs in OUT
 # are reused, so an interrupted comparison resumes. EPOCHS=N shortens every
-# stylization; BACKEND picks the backend (default flex). Writes OUT/table.md.
+# stylization; BACKEND picks the backend (default flex); ROWS="refnpr arf"
+# runs a subset; SIZE=192 renders the procedural scene at 192x192 (default
+# 96); BIN=path uses that binary instead of building one (a copy
+# keeps a long comparison on one binary while the tree is rebuilt). Writes
+# OUT/table.md with the rows that have results.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scene=${1:?usage: scripts/compare.sh procedural|lego|fern [OUT]}
@@ -16,15 +20,14 @@ out=${2:-compare-$scene}
 backend=${BACKEND:-flex}
 shared=${REFNPR_SHARED_DATA:-../shared/data}
 mkdir -p "$out"
-cargo build --quiet
-bin=target/debug/refnpr
+if [ -n "${BIN:-}" ]; then bin=$BIN; else cargo build --quiet; bin=target/debug/refnpr; fi
 epochs=()
 [ -n "${EPOCHS:-}" ] && epochs=(--epochs "$EPOCHS")
 
 gt=()
 case "$scene" in
   procedural)
-    [ -d "$out/scene" ] || $bin scene --out "$out/scene"
+    [ -d "$out/scene" ] || $bin scene --out "$out/scene" --size "${SIZE:-96}"
     data="$out/scene"
     train_config=(--config configs/demo.toml)
     gt=(--gt "$out/scene/stylized")
@@ -47,7 +50,8 @@ if [ ! -f "$out/case/style.png" ]; then
   fi
 fi
 
-rows=(refnpr arf no_reference reference_rays_only no_feature no_colour no_smooth)
+all_rows=(refnpr arf no_reference reference_rays_only no_feature no_colour no_smooth)
+read -r -a rows <<< "${ROWS:-${all_rows[*]}}"
 for row in "${rows[@]}"; do
   run="$out/$row"
   if [ ! -f "$run/stylize.json" ]; then
@@ -62,9 +66,9 @@ for row in "${rows[@]}"; do
   [ -f "$run/eval.json" ] || $bin eval --run "$run" --reference "$out/case" "${gt[@]}" --backend "$backend" --out "$run/eval.json" > /dev/null
 done
 
-python3 - "$out" "${rows[@]}" <<'EOF'
-import json, sys
-out, rows = sys.argv[1], sys.argv[2:]
+python3 - "$out" "${all_rows[@]}" <<'EOF'
+import json, os, sys
+out, rows = sys.argv[1], [r for r in sys.argv[2:] if os.path.exists(f"{sys.argv[1]}/{r}/eval.json")]
 names = {"refnpr": "Ref-NPR", "arf": "ARF", "no_reference": "Ref-NPR w/o L_ref", "reference_rays_only": "Ref-NPR, reference rays only",
          "no_feature": "Ref-NPR w/o L_feat", "no_colour": "Ref-NPR w/o L_color", "no_smooth": "Ref-NPR w/o smooth update"}
 fmt = lambda v, d=2: "-" if v is None else f"{v:.{d}f}"

@@ -11,6 +11,7 @@ pub mod bench;
 pub mod binfile;
 pub mod camera;
 pub mod checkpoint;
+pub mod colour_transfer;
 pub mod config;
 pub mod data;
 pub mod demo;

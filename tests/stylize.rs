@@ -326,6 +326,7 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
     let case = write_case(t.path(), &scene, 0, "");
     let out = t.path().join("style");
     let report = run_stylize(&job(&photo, &case, &out, quick_config(4), Method::RefNpr)).unwrap();
+    assert!(report.colour_transfer.is_none(), "the photos are recoloured for ARF only");
     let twin = data::load(&scene.join("stylized"), &Default::default()).unwrap();
     let (before, after) = (test_psnr(&photo, &twin), test_psnr(&out, &twin));
     eprintln!("PSNR to the stylized twin: photoreal {before:.2} dB, stylized {after:.2} dB; {:.1} s", report.total_seconds);
@@ -396,6 +397,8 @@ fn arf_baseline_lowers_its_matching_loss() {
     let mut j = job(&photo, &case, &out, cfg, Method::Arf);
     j.render_test = false;
     let report = run_stylize(&j).unwrap();
+    let tf = report.colour_transfer.expect("ARF recolours the photos by default");
+    assert!(tf.matrix.iter().flatten().chain(&tf.offset).all(|v| v.is_finite()) && tf != refnpr::colour_transfer::ColourTransfer::IDENTITY, "{tf:?}");
     let image: Vec<f32> = report.curve.iter().filter(|p| p.phase == "image").map(|p| p.feature).collect();
     assert_eq!(image.len(), 4 * 6, "ARF has no smooth update");
     let (first, last) = (image[..6].iter().sum::<f32>() / 6.0, image[18..].iter().sum::<f32>() / 6.0);

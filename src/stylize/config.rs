@@ -113,11 +113,14 @@ pub struct ArfConfig {
     pub nnfm: f32,
     /// Content MSE (relu3_x block) weight.
     pub content: f32,
+    /// Recolour the training photos to the style image's colour mean and
+    /// covariance before the refit (ARF's preprocessing).
+    pub colour_transfer: bool,
 }
 
 impl Default for ArfConfig {
     fn default() -> Self {
-        Self { nnfm: 1.0, content: 5e-3 }
+        Self { nnfm: 1.0, content: 5e-3, colour_transfer: true }
     }
 }
 

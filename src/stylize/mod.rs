@@ -38,6 +38,7 @@ use serde::Serialize;
 use crate::backend::BackendKind;
 use crate::camera::{Camera, Ray, to_ndc};
 use crate::checkpoint;
+use crate::colour_transfer::{ColourStats, ColourTransfer};
 use crate::data::Dataset;
 use crate::grid::{RadianceGrid, available_memory_bytes};
 use crate::reference::{self, ReferenceCase};
@@ -48,6 +49,10 @@ use crate::vgg::{Vgg16, VggLayer};
 use config::StylizeConfig;
 use frozen::FrozenSamples;
 use tcm::{ColourTargets, FEATURE_BLOCKS, Image, RELU3, ReferencePair, Template};
+
+/// A pixel within this of the background colour in every channel is background
+/// (for the colour-transfer statistics).
+const BACKGROUND_TOLERANCE: f32 = 0.01;
 
 /// Which stylization.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -123,6 +128,8 @@ pub struct StylizeReport {
     pub registered_pixels: usize,
     pub registered_fraction: f32,
     pub colour_matched_fraction: f32,
+    /// ARF: the affine recolouring applied to the photos before the refit.
+    pub colour_transfer: Option<ColourTransfer>,
     /// Seconds per phase: registration, refit, content (renders, features, TCM), image_epochs, smooth_update.
     pub seconds: std::collections::BTreeMap<String, f64>,
     pub total_seconds: f64,
@@ -282,6 +289,8 @@ struct Stylizer<'a> {
     registered: Vec<(u32, u32, [f32; 3])>,
     /// Sample lists of the registered pixels, in that order (None = re-marched when picked).
     registered_samples: Option<FrozenSamples>,
+    /// ARF: the photos are recoloured with this before the refit.
+    colour_transfer: Option<ColourTransfer>,
     curve: Vec<CurvePoint>,
     warnings: Vec<String>,
 }
@@ -325,9 +334,13 @@ impl Stylizer<'_> {
         self.curve.push(p);
     }
 
-    /// Ray epochs: refit the degree-0 colour to the photos (MSE, SH TV).
+    /// Ray epochs: refit the degree-0 colour to the photos (MSE, SH TV);
+    /// ARF: to the recoloured photos.
     fn refit(&mut self) -> Result<()> {
-        let (rays, colours) = crate::train::training_rays(&self.dataset.train, self.dataset);
+        let (rays, mut colours) = crate::train::training_rays(&self.dataset.train, self.dataset);
+        if let Some(tf) = &self.colour_transfer {
+            colours.iter_mut().for_each(|c| *c = tf.apply(*c));
+        }
         let s = &self.cfg.schedule;
         let steps = (s.ray_epochs as f64 * rays.len() as f64 / s.ray_batch as f64).ceil() as usize;
         let bar = progress_bar(steps as u64, 0);
@@ -674,6 +687,28 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
         styles = vec![Image { width: w as usize, height: h as usize, rgb }];
     }
 
+    // ARF's colour transfer: photo statistics over the pixels that are not
+    // the background colour, style statistics over the reference pixels that
+    // see the scene (a style image given with --style: its non-background pixels).
+    let colour_transfer = (job.method == Method::Arf && cfg.arf.colour_transfer).then(|| {
+        let background = ck.meta.background;
+        let not_background = |c: &&[f32; 3]| c.iter().zip(background).any(|(a, b)| (a - b).abs() > BACKGROUND_TOLERANCE);
+        let photos: Vec<[f32; 3]> = dataset.train.iter().flat_map(|v| v.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]])).collect();
+        let style_pixels: Vec<[f32; 3]> = styles[0].rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let style_hits: Vec<[f32; 3]> = match (&job.style, registration.references.first()) {
+            (None, Some(r)) if r.hits.len() == style_pixels.len() => style_pixels.iter().zip(&r.hits).filter(|(_, h)| **h).map(|(c, _)| *c).collect(),
+            _ => style_pixels.iter().filter(not_background).copied().collect(),
+        };
+        let pick = |subset: Vec<[f32; 3]>, all: &[[f32; 3]]| if subset.is_empty() { all.to_vec() } else { subset };
+        let content = pick(photos.iter().filter(not_background).copied().collect(), &photos);
+        let style = pick(style_hits, &style_pixels);
+        let stats = |c: &[[f32; 3]]| ColourStats::of(c).expect("non-empty: an image has pixels");
+        ColourTransfer::between(&stats(&content), &stats(&style))
+    });
+    if let Some(tf) = &colour_transfer {
+        eprintln!("ARF colour transfer: photos recoloured with {:?} + {:?}", tf.matrix, tf.offset);
+    }
+
     let photo_meta = ck.meta.clone();
     let field = StyleField::new(ck.grid);
     let mut st = Stylizer {
@@ -698,6 +733,7 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
         registration,
         registered,
         registered_samples: None,
+        colour_transfer,
         curve: Vec::new(),
         warnings,
     };
@@ -824,6 +860,7 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
         registered_pixels: st.registered.len(),
         registered_fraction: reg_report.fraction_overall,
         colour_matched_fraction: colour_matched,
+        colour_transfer: st.colour_transfer,
         total_seconds: started.elapsed().as_secs_f64(),
         seconds,
         peak_rss_mb: peak_rss_mb(),
