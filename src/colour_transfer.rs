@@ -111,21 +111,14 @@ pub fn symmetric_eigen(s: &[[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
             let c = 1.0 / (t * t + 1.0).sqrt();
             let sn = t * c;
             // a <- J^T a J, v <- v J, with J the rotation in the (p, q) plane.
-            for k in 0..3 {
-                let (akp, akq) = (a[k][p], a[k][q]);
-                a[k][p] = c * akp - sn * akq;
-                a[k][q] = sn * akp + c * akq;
+            for row in a.iter_mut().chain(v.iter_mut()) {
+                let (xp, xq) = (row[p], row[q]);
+                row[p] = c * xp - sn * xq;
+                row[q] = sn * xp + c * xq;
             }
-            for k in 0..3 {
-                let (apk, aqk) = (a[p][k], a[q][k]);
-                a[p][k] = c * apk - sn * aqk;
-                a[q][k] = sn * apk + c * aqk;
-            }
-            for row in v.iter_mut() {
-                let (vp, vq) = (row[p], row[q]);
-                row[p] = c * vp - sn * vq;
-                row[q] = sn * vp + c * vq;
-            }
+            let (rp, rq) = (a[p], a[q]);
+            a[p] = std::array::from_fn(|k| c * rp[k] - sn * rq[k]);
+            a[q] = std::array::from_fn(|k| sn * rp[k] + c * rq[k]);
         }
     }
     ([a[0][0], a[1][1], a[2][2]], v)
