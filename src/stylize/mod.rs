@@ -54,6 +54,11 @@ use tcm::{ColourTargets, FEATURE_BLOCKS, Image, RELU3, ReferencePair, Template};
 /// (for the colour-transfer statistics).
 const BACKGROUND_TOLERANCE: f32 = 0.01;
 
+/// Whether a photo pixel has the background colour (within `BACKGROUND_TOLERANCE`).
+fn is_background(c: &[f32; 3], background: [f32; 3]) -> bool {
+    c.iter().zip(background).all(|(a, b)| (a - b).abs() <= BACKGROUND_TOLERANCE)
+}
+
 /// Which stylization.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -339,7 +344,10 @@ impl Stylizer<'_> {
     fn refit(&mut self) -> Result<()> {
         let (rays, mut colours) = crate::train::training_rays(&self.dataset.train, self.dataset);
         if let Some(tf) = &self.colour_transfer {
-            colours.iter_mut().for_each(|c| *c = tf.apply(*c));
+            // Background pixels stay: rays that miss the scene render the
+            // fixed background colour, and a recoloured target there could
+            // never be fitted (lego: 70 % of the pixels).
+            colours.iter_mut().filter(|c| !is_background(c, self.background)).for_each(|c| *c = tf.apply(*c));
         }
         let s = &self.cfg.schedule;
         let steps = (s.ray_epochs as f64 * rays.len() as f64 / s.ray_batch as f64).ceil() as usize;
@@ -692,7 +700,7 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
     // see the scene (a style image given with --style: its non-background pixels).
     let colour_transfer = (job.method == Method::Arf && cfg.arf.colour_transfer).then(|| {
         let background = ck.meta.background;
-        let not_background = |c: &&[f32; 3]| c.iter().zip(background).any(|(a, b)| (a - b).abs() > BACKGROUND_TOLERANCE);
+        let not_background = |c: &&[f32; 3]| !is_background(c, background);
         let photos: Vec<[f32; 3]> = dataset.train.iter().flat_map(|v| v.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]])).collect();
         let style_pixels: Vec<[f32; 3]> = styles[0].rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
         let style_hits: Vec<[f32; 3]> = match (&job.style, registration.references.first()) {
