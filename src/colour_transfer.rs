@@ -31,7 +31,7 @@ pub struct ColourStats {
 }
 
 impl ColourStats {
-    pub fn of<'a>(colours: impl IntoIterator<Item = &'a [f32; 3]>) -> Result<Self> {
+    pub fn of(colours: impl IntoIterator<Item = [f32; 3]>) -> Result<Self> {
         let mut sum = [0.0f64; 3];
         let mut outer = [[0.0f64; 3]; 3];
         let mut count = 0usize;
@@ -165,10 +165,10 @@ mod tests {
     fn recoloured_content_has_the_style_mean_and_covariance() {
         let content = colours(1, 20_000, [0.1, 0.2, 0.1], [[0.6, 0.1, 0.0], [0.3, 0.4, 0.0], [0.1, 0.1, 0.3]]);
         let style = colours(2, 5_000, [0.5, 0.1, 0.3], [[0.1, 0.0, 0.2], [0.2, 0.3, 0.0], [0.0, 0.1, 0.5]]);
-        let (c, s) = (ColourStats::of(&content).unwrap(), ColourStats::of(&style).unwrap());
+        let (c, s) = (ColourStats::of(content.iter().copied()).unwrap(), ColourStats::of(style.iter().copied()).unwrap());
         let tf = ColourTransfer::between(&c, &s);
         let mapped: Vec<[f32; 3]> = content.iter().map(|&x| tf.apply_unclamped(x)).collect();
-        let m = ColourStats::of(&mapped).unwrap();
+        let m = ColourStats::of(mapped).unwrap();
         for i in 0..3 {
             assert!((m.mean[i] - s.mean[i]).abs() < 1e-5, "mean {:?} vs {:?}", m.mean, s.mean);
             for j in 0..3 {
@@ -190,15 +190,15 @@ mod tests {
     fn a_flat_style_maps_everything_to_its_colour() {
         let content = colours(3, 1000, [0.2, 0.2, 0.2], [[0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]]);
         let style = vec![[0.8f32, 0.3, 0.1]; 50];
-        let tf = ColourTransfer::between(&ColourStats::of(&content).unwrap(), &ColourStats::of(&style).unwrap());
+        let tf = ColourTransfer::between(&ColourStats::of(content.iter().copied()).unwrap(), &ColourStats::of(style.iter().copied()).unwrap());
         for x in &content {
             let y = tf.apply(*x);
             assert!(y.iter().zip(style[0]).all(|(a, b)| (a - b).abs() < 1e-3), "{x:?} -> {y:?}");
         }
         // A flat content image does not divide by zero either.
-        let tf = ColourTransfer::between(&ColourStats::of(&style).unwrap(), &ColourStats::of(&content).unwrap());
+        let tf = ColourTransfer::between(&ColourStats::of(style.iter().copied()).unwrap(), &ColourStats::of(content.iter().copied()).unwrap());
         assert!(tf.matrix.iter().flatten().chain(&tf.offset).all(|v| v.is_finite()), "{tf:?}");
-        assert!(ColourStats::of(&[]).is_err());
+        assert!(ColourStats::of([]).is_err());
     }
 
     #[test]

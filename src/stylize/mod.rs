@@ -698,21 +698,21 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
     // ARF's colour transfer: photo statistics over the pixels that are not
     // the background colour, style statistics over the reference pixels that
     // see the scene (a style image given with --style: its non-background pixels).
-    let colour_transfer = (job.method == Method::Arf && cfg.arf.colour_transfer).then(|| {
+    let colour_transfer = if job.method == Method::Arf && cfg.arf.colour_transfer {
         let background = ck.meta.background;
-        let not_background = |c: &&[f32; 3]| !is_background(c, background);
-        let photos: Vec<[f32; 3]> = dataset.train.iter().flat_map(|v| v.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]])).collect();
+        let photos = || dataset.train.iter().flat_map(|v| v.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]));
+        // Falls back to every pixel when the mask leaves none.
+        let content = ColourStats::of(photos().filter(|c| !is_background(c, background))).or_else(|_| ColourStats::of(photos()))?;
         let style_pixels: Vec<[f32; 3]> = styles[0].rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
-        let style_hits: Vec<[f32; 3]> = match (&job.style, registration.references.first()) {
-            (None, Some(r)) if r.hits.len() == style_pixels.len() => style_pixels.iter().zip(&r.hits).filter(|(_, h)| **h).map(|(c, _)| *c).collect(),
-            _ => style_pixels.iter().filter(not_background).copied().collect(),
+        let style_mask: Vec<bool> = match (&job.style, registration.references.first()) {
+            (None, Some(r)) if r.hits.len() == style_pixels.len() => r.hits.clone(),
+            _ => style_pixels.iter().map(|c| !is_background(c, background)).collect(),
         };
-        let pick = |subset: Vec<[f32; 3]>, all: &[[f32; 3]]| if subset.is_empty() { all.to_vec() } else { subset };
-        let content = pick(photos.iter().filter(not_background).copied().collect(), &photos);
-        let style = pick(style_hits, &style_pixels);
-        let stats = |c: &[[f32; 3]]| ColourStats::of(c).expect("non-empty: an image has pixels");
-        ColourTransfer::between(&stats(&content), &stats(&style))
-    });
+        let style = ColourStats::of(style_pixels.iter().zip(&style_mask).filter(|(_, m)| **m).map(|(c, _)| *c)).or_else(|_| ColourStats::of(style_pixels.iter().copied()))?;
+        Some(ColourTransfer::between(&content, &style))
+    } else {
+        None
+    };
     if let Some(tf) = &colour_transfer {
         eprintln!("ARF colour transfer: photos recoloured with {:?} + {:?}", tf.matrix, tf.offset);
     }
