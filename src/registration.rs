@@ -150,7 +150,7 @@ pub fn register_case(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, p
             eprintln!("warning: {msg}");
             warnings.push(msg);
         }
-        let colours: Vec<[f32; 3]> = rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let colours: Vec<[f32; 3]> = crate::imageio::pixels(&rgb).collect();
         ref_pixels.push(ReferencePixels { camera: *cam, colours: colours.clone(), hits: surface.points.iter().map(|p| p.is_some()).collect() });
         refs.push(Reference { surface, colours });
     }

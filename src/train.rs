@@ -351,7 +351,7 @@ pub fn training_rays(views: &[View], dataset: &Dataset) -> (Vec<Ray>, Vec<[f32; 
     let mut colours = Vec::new();
     for v in views {
         rays.extend(v.camera.rays(dataset.ndc.as_ref()));
-        colours.extend(v.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]));
+        colours.extend(crate::imageio::pixels(&v.rgb));
     }
     (rays, colours)
 }

@@ -700,10 +700,10 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
     // see the scene (a style image given with --style: its non-background pixels).
     let colour_transfer = if job.method == Method::Arf && cfg.arf.colour_transfer {
         let background = ck.meta.background;
-        let photos = || dataset.train.iter().flat_map(|v| v.rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]));
+        let photos = || dataset.train.iter().flat_map(|v| crate::imageio::pixels(&v.rgb));
         // Falls back to every pixel when the mask leaves none.
         let content = ColourStats::of(photos().filter(|c| !is_background(c, background))).or_else(|_| ColourStats::of(photos()))?;
-        let style_pixels: Vec<[f32; 3]> = styles[0].rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        let style_pixels: Vec<[f32; 3]> = crate::imageio::pixels(&styles[0].rgb).collect();
         let style_mask: Vec<bool> = match (&job.style, registration.references.first()) {
             (None, Some(r)) if r.hits.len() == style_pixels.len() => r.hits.clone(),
             _ => style_pixels.iter().map(|c| !is_background(c, background)).collect(),
