@@ -8,10 +8,13 @@ writes demo_reference.png (photo at the reference view | the reference),
 demo_novel_views.png (photoreal orbit frames above the stylized ones at the
 same cameras), and the two orbit GIFs.
 
-From two stylizations of one real scene (Ref-NPR and ARF, same case):
+From two stylizations of one real scene (Ref-NPR and ARF, same case),
+each rendered with `refnpr render --ckpt RUN --path test|spiral --out RUN/test`:
     python3 scripts/make_gallery.py --scene lego CASE REFNPR_RUN ARF_RUN
 writes lego_reference.png (content | reference), lego_test_views.png
-(Ref-NPR test renders above ARF's at the same cameras) and both test GIFs.
+(four of the Ref-NPR renders above ARF's at the same cameras) and both
+GIFs (frames wider than GIF_WIDTH are halved, so a 504x378 spiral stays a
+few MB).
 """
 import shutil
 import sys
@@ -21,6 +24,7 @@ from PIL import Image
 
 FRAMES = [5, 20, 35, 50]  # orbit frames shown as novel views
 SCALE = 2                 # the demo renders 96x96: enlarge for the README
+GIF_WIDTH = 320           # real-scene GIFs wider than this are halved
 
 
 def on_white(path):
@@ -53,12 +57,27 @@ def scene_gallery(name, case, refnpr, arf, out):
     reference = row([on_white(case / "content.png"), on_white(case / "style.png")])
     reference.save(out / f"{name}_reference.png")
     frames = sorted((refnpr / "test/rgb").glob("*.png"))
-    picks = [frames[i * len(frames) // 4].name for i in range(4)]
+    picks = sorted({frames[i * len(frames) // 4].name for i in range(4)})
     top = row([on_white(refnpr / "test/rgb" / f) for f in picks])
     bottom = row([on_white(arf / "test/rgb" / f) for f in picks])
     column([top, bottom]).save(out / f"{name}_test_views.png")
-    shutil.copy(refnpr / "test/path.gif", out / f"{name}_refnpr.gif")
-    shutil.copy(arf / "test/path.gif", out / f"{name}_arf.gif")
+    small_gif(refnpr / "test/path.gif", out / f"{name}_refnpr.gif")
+    small_gif(arf / "test/path.gif", out / f"{name}_arf.gif")
+
+
+def small_gif(src, dst):
+    """Copies a GIF, halving its frames when it is wider than GIF_WIDTH."""
+    gif = Image.open(src)
+    if gif.width <= GIF_WIDTH:
+        shutil.copy(src, dst)
+        return
+    size = (gif.width // 2, gif.height // 2)
+    frames, durations = [], []
+    for i in range(gif.n_frames):
+        gif.seek(i)
+        frames.append(gif.convert("RGB").resize(size, Image.LANCZOS))
+        durations.append(gif.info.get("duration", 40))
+    frames[0].save(dst, save_all=True, append_images=frames[1:], duration=durations, loop=0)
 
 
 def main():

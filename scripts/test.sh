@@ -13,7 +13,7 @@ export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 echo "== flex: full suite"
 REFNPR_BACKEND=flex cargo test --all-targets
 
-STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input)
+STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input --skip robustness)
 
 echo "== ndarray: renderer, grid, VGG16, stylization units, metrics"
 REFNPR_BACKEND=ndarray cargo test --test renderer --test vgg --test evaluation --lib

@@ -16,8 +16,8 @@
 //!   other with the field's depth (frames 1 and 7 apart), over points visible
 //!   in both;
 //! - `robustness_psnr`: the stylized field's own renders at N path views used
-//!   as new references, stylized again; PSNR between the two fields' renders
-//!   along the path, averaged.
+//!   as new references, stylized again with the run's method; PSNR between
+//!   the two fields' renders along the path, averaged.
 
 use std::path::{Path, PathBuf};
 
@@ -315,6 +315,9 @@ fn robustness(job: &EvalJob, ck: &Checkpoint, frames: &[SurfaceRender], path_fra
     };
     let photo = PathBuf::from(report["photo"].as_str().context("stylize.json names no photo run")?);
     let mut config: StylizeConfig = serde_json::from_value(report["config"].clone()).context("stylize.json's config")?;
+    // The paper restylizes with the method under test: an ARF run is
+    // restylized by ARF with its own render as the style image.
+    let method: Method = report["method"].as_str().context("stylize.json names no method")?.parse().context("stylize.json's method")?;
     if let Some(e) = job.robustness_epochs {
         config.schedule.image_epochs = e;
     }
@@ -337,7 +340,7 @@ fn robustness(job: &EvalJob, ck: &Checkpoint, frames: &[SurfaceRender], path_fra
             case: case_dir,
             out: out.clone(),
             config: config.clone(),
-            method: Method::RefNpr,
+            method,
             backend: job.backend,
             style: None,
             data: job.data.clone(),

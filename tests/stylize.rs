@@ -445,3 +445,44 @@ fn ablation_configs_each_change_one_switch() {
     }
     assert_eq!(seen, 5);
 }
+
+/// Robustness (paper supplementary A) restylizes with the run's own method,
+/// from the run's own render: an ARF run is restylized by ARF, a Ref-NPR run
+/// by Ref-NPR. The restylized Ref-NPR field reproduces the run's path renders
+/// more closely than the photoreal field does.
+#[test]
+fn robustness_restylizes_with_the_runs_method() {
+    use refnpr::evaluation::{EvalJob, evaluate_stylization, render_surface};
+    let t = TempDir::new("stylize-robustness");
+    let photo = tiny_photo_run(t.path(), 120, 6);
+    let frames = 12;
+    let case = write_case(t.path(), &t.path().join("scene"), 1, &format!("path_frames = {frames}\n"));
+    let d = common::device();
+    for method in [Method::RefNpr, Method::Arf] {
+        let out = t.path().join(format!("{method:?}"));
+        let mut j = job(&photo, &case, &out, quick_config(2), method);
+        j.render_test = false;
+        run_stylize(&j).unwrap();
+        let eval = EvalJob { run: out.clone(), case: case.clone(), gt: None, robustness: 1, backend: common::backend(), data: None, robustness_epochs: Some(2) };
+        let e = evaluate_stylization(&eval).unwrap();
+        let again: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("robustness/stylized_0/stylize.json")).unwrap()).unwrap();
+        assert_eq!(again["method"], serde_json::to_value(method).unwrap(), "{method:?} restylized with another method");
+        let robustness = e.robustness_psnr.expect("robustness asked for");
+        // The photoreal field against the run's path renders: where a
+        // restylization would stand if it learned nothing from its reference.
+        let (ck, dataset) = checkpoint::load_run(&out, None, &d).unwrap();
+        let photo_ck = checkpoint::load_with(&photo, &d, false).unwrap();
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for cam in dataset.render_path(frames) {
+            let (a, b) = (render_surface(&ck, &cam).unwrap(), render_surface(&photo_ck, &cam).unwrap());
+            sum += a.rgb.iter().zip(&b.rgb).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>();
+            n += a.rgb.len();
+        }
+        let photoreal = refnpr::metrics::psnr_from_mse((sum / n as f64) as f32);
+        eprintln!("{method:?}: robustness {robustness:.2} dB, photoreal field vs the run {photoreal:.2} dB");
+        assert!(robustness.is_finite());
+        if method == Method::RefNpr {
+            assert!(robustness > photoreal + 1.0, "restylized {robustness:.2} dB vs photoreal {photoreal:.2} dB");
+        }
+    }
+}
