@@ -197,6 +197,27 @@ fn test_camera(size: u32) -> Camera {
     Camera::new(Intrinsics::from_fov_x(size, size, 0.8), look_at(Vec3::new(0.3, 0.5, 2.6), Vec3::ZERO, Vec3::Y))
 }
 
+/// Marching in chunks gives the same samples as one march (chunk 7 over
+/// 1600 rays, weights cut at 1e-5 as in stylization), and a march that would
+/// keep more than its byte budget gives up instead of finishing.
+#[test]
+fn chunked_march_equals_one_march_and_respects_its_budget() {
+    let grid = random_grid(5);
+    let rays = test_camera(40).rays(None);
+    let march = MarchParams::default();
+    let whole = FrozenSamples::march_within(&grid, &rays, &march, 1e-5, rays.len(), usize::MAX).unwrap();
+    let chunked = FrozenSamples::march_within(&grid, &rays, &march, 1e-5, 7, usize::MAX).unwrap();
+    assert!(whole.num_samples() > 1000, "the camera sees the blob");
+    assert_eq!(chunked.num_rays, whole.num_rays);
+    assert_eq!(chunked.ray_offsets, whole.ray_offsets);
+    assert_eq!(chunked.corner_rows, whole.corner_rows);
+    assert_eq!(chunked.colour_weights, whole.colour_weights);
+    assert_eq!(chunked.weight, whole.weight);
+    assert_eq!(chunked.final_transmittance, whole.final_transmittance);
+    assert!(FrozenSamples::march_within(&grid, &rays, &march, 1e-5, 7, whole.bytes()).is_some());
+    assert!(FrozenSamples::march_within(&grid, &rays, &march, 1e-5, 7, whole.bytes() / 2).is_none());
+}
+
 /// Deferred back-propagation (full forward without autodiff, image gradient
 /// through VGG, chunked re-render injecting it) gives the grid gradient of
 /// direct back-propagation through one graph: relative L2 error < 1e-4

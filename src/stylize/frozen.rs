@@ -17,6 +17,10 @@ use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, activation::relu};
 /// The degree-0 SH basis constant (colour = max(C0 c + 0.5, 0)).
 pub const SH_C0: f32 = 0.282_094_8;
 
+/// Rays marched at once: bounds the unfiltered sample buffers of one march
+/// (every sample of the chunk before the weight cut) to a few hundred MB.
+pub const MARCH_CHUNK: usize = 16384;
+
 /// Samples of a set of rays with their fixed weights (plain buffers).
 #[derive(Debug, Clone, Default)]
 pub struct FrozenSamples {
@@ -39,14 +43,31 @@ impl FrozenSamples {
     /// weight is below `min_weight` are dropped (their colour cannot matter
     /// to the image; 0 keeps all).
     pub fn march(grid: &RadianceGrid, rays: &[Ray], params: &MarchParams, min_weight: f32) -> Self {
-        let batch = render::generate_samples(grid, rays, params);
-        let mut out = FrozenSamples {
-            num_rays: rays.len(),
-            ray_offsets: Vec::with_capacity(rays.len() + 1),
-            ..Default::default()
-        };
+        Self::march_within(grid, rays, params, min_weight, MARCH_CHUNK, usize::MAX).expect("an unbounded march always fits")
+    }
+
+    /// `march`, `chunk` rays at a time, giving up (None) as soon as the kept
+    /// samples hold more than `budget` bytes. Marching in chunks bounds the
+    /// unfiltered sample buffers, which hold every sample of the marched rays
+    /// before the weight cut: fern's 1.9 M registered pixels marched at once
+    /// needed more than 20 GB there. The result does not depend on `chunk`.
+    pub fn march_within(grid: &RadianceGrid, rays: &[Ray], params: &MarchParams, min_weight: f32, chunk: usize, budget: usize) -> Option<Self> {
+        let marcher = render::Marcher::new(grid);
+        let mut out = FrozenSamples { ray_offsets: Vec::with_capacity(rays.len() + 1), ..Default::default() };
         out.ray_offsets.push(0);
-        for r in 0..rays.len() {
+        for part in rays.chunks(chunk.max(1)) {
+            out.push_weighted(grid, &marcher.samples(part, params), part.len(), min_weight);
+            if out.bytes() > budget {
+                return None;
+            }
+        }
+        Some(out)
+    }
+
+    /// Appends the `num_rays` rays of `batch`, keeping the samples whose
+    /// compositing weight exceeds `min_weight`.
+    fn push_weighted(&mut self, grid: &RadianceGrid, batch: &render::SampleBatch, num_rays: usize, min_weight: f32) {
+        for r in 0..num_rays {
             let (lo, hi) = (batch.ray_offsets[r] as usize, batch.ray_offsets[r + 1] as usize);
             let mut optical = 0.0f32;
             for s in lo..hi {
@@ -58,15 +79,15 @@ impl FrozenSamples {
                 let w = (-optical).exp() * (1.0 - (-tau).exp());
                 optical += tau;
                 if w > min_weight || (min_weight == 0.0 && w >= 0.0) {
-                    out.corner_rows.extend_from_slice(&batch.corner_rows[s * 8..s * 8 + 8]);
-                    out.colour_weights.extend_from_slice(&batch.colour_weights[s * 8..s * 8 + 8]);
-                    out.weight.push(w);
+                    self.corner_rows.extend_from_slice(&batch.corner_rows[s * 8..s * 8 + 8]);
+                    self.colour_weights.extend_from_slice(&batch.colour_weights[s * 8..s * 8 + 8]);
+                    self.weight.push(w);
                 }
             }
-            out.final_transmittance.push((-optical).exp());
-            out.ray_offsets.push(out.weight.len() as u32);
+            self.final_transmittance.push((-optical).exp());
+            self.ray_offsets.push(self.weight.len() as u32);
         }
-        out
+        self.num_rays += num_rays;
     }
 
     pub fn num_samples(&self) -> usize {

@@ -397,18 +397,21 @@ impl Stylizer<'_> {
     /// Caches sample lists up to the configured memory: first the
     /// registered pixels (a batch of them is rendered every step), then the views.
     fn cache_samples(&mut self) {
+        // Each march gives up as soon as it would overrun what is left of the
+        // budget, so memory never holds more than the budget plus one chunk.
         let budget = self.cfg.sample_cache_mb * 1024 * 1024;
         let mut used = 0usize;
+        let mut march = |rays: &[Ray]| {
+            let s = FrozenSamples::march_within(&self.field.grid, rays, &self.march, self.cfg.min_sample_weight, frozen::MARCH_CHUNK, budget - used)?;
+            used += s.bytes();
+            Some(s)
+        };
         if self.job.method == Method::RefNpr && !self.registered.is_empty() {
             let rays: Vec<Ray> = self.registered.iter().map(|p| self.pixel_ray(p.0 as usize, p.1 as usize)).collect();
-            let s = FrozenSamples::march(&self.field.grid, &rays, &self.march, self.cfg.min_sample_weight);
-            used += s.bytes();
-            self.registered_samples = (used <= budget).then_some(s);
+            self.registered_samples = march(&rays);
         }
         for v in 0..self.dataset.train.len() {
-            let s = self.march_camera(&self.dataset.train[v].camera);
-            used += s.bytes();
-            self.view_samples[v] = (used <= budget).then_some(s);
+            self.view_samples[v] = march(&self.dataset.train[v].camera.rays(self.ndc.as_ref()));
         }
     }
 
