@@ -189,6 +189,11 @@ impl<'a> Marcher<'a> {
         Self { grid, occupancy: std::borrow::Cow::Borrowed(occupancy) }
     }
 
+    /// The grid this marches through.
+    pub fn grid(&self) -> &'a RadianceGrid {
+        self.grid
+    }
+
     /// When sample `k` (at `t`) lies in an empty block: the index of the
     /// first sample at or after the ray's exit from that block.
     fn skip_empty(&self, a: glam::Vec3, d: glam::Vec3, t0: f32, step: f32, t: f32, k: usize) -> Option<usize> {

@@ -15,7 +15,7 @@ use refnpr::checkpoint;
 use refnpr::config::TrainConfig;
 use refnpr::data::{self, DatasetKind, procedural};
 use refnpr::grid::{GridGeometry, RadianceGrid};
-use refnpr::render::{self, BatchTensors, MarchParams};
+use refnpr::render::{self, BatchTensors, MarchParams, Marcher};
 use refnpr::stylize::config::StylizeConfig;
 use refnpr::stylize::frozen::{FrozenSamples, render_colour, render_plain};
 use refnpr::stylize::tcm::Template;
@@ -154,7 +154,7 @@ fn sh_tv_gradient_matches_finite_differences() {
     let n = grid.num_rows();
     let field = StyleField::new(grid);
     let (weight, fraction, seed) = (0.5f32, 0.3f32, 11u64);
-    let grad = to_vec(field.tv_gradient(weight, fraction, &mut ChaCha8Rng::seed_from_u64(seed)).expect("a TV gradient"));
+    let grad = to_vec(field.add_tv_gradient(Tensor::zeros([n, 3], &field.grid.device()), weight, fraction, &mut ChaCha8Rng::seed_from_u64(seed)));
     // The same picks (every lattice point is a row here, row = flat index).
     let count = (n as f32 * fraction).ceil() as usize;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -205,8 +205,8 @@ fn chunked_march_equals_one_march_and_respects_its_budget() {
     let grid = random_grid(5);
     let rays = test_camera(40).rays(None);
     let march = MarchParams::default();
-    let whole = FrozenSamples::march_within(&grid, &rays, &march, 1e-5, rays.len(), usize::MAX).unwrap();
-    let chunked = FrozenSamples::march_within(&grid, &rays, &march, 1e-5, 7, usize::MAX).unwrap();
+    let whole = FrozenSamples::march_within(&Marcher::new(&grid), &rays, &march, 1e-5, rays.len(), usize::MAX).unwrap();
+    let chunked = FrozenSamples::march_within(&Marcher::new(&grid), &rays, &march, 1e-5, 7, usize::MAX).unwrap();
     assert!(whole.num_samples() > 1000, "the camera sees the blob");
     assert_eq!(chunked.num_rays, whole.num_rays);
     assert_eq!(chunked.ray_offsets, whole.ray_offsets);
@@ -214,8 +214,8 @@ fn chunked_march_equals_one_march_and_respects_its_budget() {
     assert_eq!(chunked.colour_weights, whole.colour_weights);
     assert_eq!(chunked.weight, whole.weight);
     assert_eq!(chunked.final_transmittance, whole.final_transmittance);
-    assert!(FrozenSamples::march_within(&grid, &rays, &march, 1e-5, 7, whole.bytes()).is_some());
-    assert!(FrozenSamples::march_within(&grid, &rays, &march, 1e-5, 7, whole.bytes() / 2).is_none());
+    assert!(FrozenSamples::march_within(&Marcher::new(&grid), &rays, &march, 1e-5, 7, whole.bytes()).is_some());
+    assert!(FrozenSamples::march_within(&Marcher::new(&grid), &rays, &march, 1e-5, 7, whole.bytes() / 2).is_none());
 }
 
 /// Deferred back-propagation (full forward without autodiff, image gradient
@@ -232,7 +232,7 @@ fn deferred_backprop_equals_direct_backprop() {
     let rays = cam.rays(None);
     let march = MarchParams::default();
     let bg = [1.0, 1.0, 1.0];
-    let samples = FrozenSamples::march(&grid, &rays, &march, 0.0);
+    let samples = FrozenSamples::march(&Marcher::new(&grid), &rays, &march, 0.0);
     assert!(samples.num_samples() > 1000, "the camera sees the blob");
     // Frozen vs general renderer.
     let frozen = render_plain(&grid.sh, &samples, bg, 4096);

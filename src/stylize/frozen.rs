@@ -10,7 +10,7 @@
 
 use crate::camera::Ray;
 use crate::grid::RadianceGrid;
-use crate::render::{self, MarchParams};
+use crate::render::{self, MarchParams, Marcher};
 use crate::tensor_util::{floats, indices};
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, activation::relu};
 
@@ -42,8 +42,8 @@ impl FrozenSamples {
     /// the density mirror, exactly as `render::composite` does. Samples whose
     /// weight is below `min_weight` are dropped (their colour cannot matter
     /// to the image; 0 keeps all).
-    pub fn march(grid: &RadianceGrid, rays: &[Ray], params: &MarchParams, min_weight: f32) -> Self {
-        Self::march_within(grid, rays, params, min_weight, MARCH_CHUNK, usize::MAX).expect("an unbounded march always fits")
+    pub fn march(marcher: &Marcher, rays: &[Ray], params: &MarchParams, min_weight: f32) -> Self {
+        Self::march_within(marcher, rays, params, min_weight, MARCH_CHUNK, usize::MAX).expect("an unbounded march always fits")
     }
 
     /// `march`, `chunk` rays at a time, giving up (None) as soon as the kept
@@ -51,12 +51,11 @@ impl FrozenSamples {
     /// unfiltered sample buffers, which hold every sample of the marched rays
     /// before the weight cut: fern's 1.9 M registered pixels marched at once
     /// needed more than 20 GB there. The result does not depend on `chunk`.
-    pub fn march_within(grid: &RadianceGrid, rays: &[Ray], params: &MarchParams, min_weight: f32, chunk: usize, budget: usize) -> Option<Self> {
-        let marcher = render::Marcher::new(grid);
+    pub fn march_within(marcher: &Marcher, rays: &[Ray], params: &MarchParams, min_weight: f32, chunk: usize, budget: usize) -> Option<Self> {
         let mut out = FrozenSamples { ray_offsets: Vec::with_capacity(rays.len() + 1), ..Default::default() };
         out.ray_offsets.push(0);
         for part in rays.chunks(chunk.max(1)) {
-            out.push_weighted(grid, &marcher.samples(part, params), part.len(), min_weight);
+            out.push_weighted(marcher.grid(), &marcher.samples(part, params), part.len(), min_weight);
             if out.bytes() > budget {
                 return None;
             }

@@ -43,6 +43,7 @@ use crate::data::Dataset;
 use crate::grid::{RadianceGrid, available_memory_bytes};
 use crate::reference::{self, ReferenceCase};
 use crate::registration::{RegistrationFile, register_case};
+use crate::render::{BlockOccupancy, Marcher};
 use crate::tensor_util::{assign_rows, floats, indices, scalar, select_rows};
 use crate::train::{RowSubset, peak_rss_mb, progress_bar};
 use crate::vgg::{Vgg16, VggLayer};
@@ -187,13 +188,14 @@ impl StyleField {
         self.grid.sh = sh - grad / (self.rms.clone().sqrt() + eps) * lr;
     }
 
-    /// Gradient of `weight` x the SH total variation over a random
-    /// `fraction` of the rows (mean over those rows of sqrt(sum of squared
-    /// differences to the +x/+y/+z neighbours)).
-    pub fn tv_gradient(&self, weight: f32, fraction: f32, rng: &mut ChaCha8Rng) -> Option<Tensor<2>> {
+    /// `into` plus the gradient of `weight` x the SH total variation over a
+    /// random `fraction` of the rows (mean over those rows of sqrt(sum of
+    /// squared differences to the +x/+y/+z neighbours)). Adding into the
+    /// caller's gradient saves a grid-sized buffer and a grid-sized sum per step.
+    pub fn add_tv_gradient(&self, into: Tensor<2>, weight: f32, fraction: f32, rng: &mut ChaCha8Rng) -> Tensor<2> {
         let n = self.grid.num_rows();
         if weight <= 0.0 || n == 0 {
-            return None;
+            return into;
         }
         let count = ((n as f32 * fraction).ceil() as usize).clamp(1, n);
         let core: Vec<i32> = (0..count).map(|_| rng.random_range(0..n) as i32).collect();
@@ -207,8 +209,10 @@ impl StyleField {
         let centre = lists.next().expect("the picked rows");
         let sq = lists.map(|nb| (nb - centre.clone()).powi_scalar(2)).reduce(|a, b| a + b).expect("three axes");
         let tv = (sq.sum_dim(1) + 1e-9).sqrt().sum() * (weight / count as f32);
-        let g = leaf.grad(&tv.backward())?;
-        Some(assign_rows(Tensor::zeros([n, 3], &device), rows, g, IndexingUpdateOp::Add))
+        match leaf.grad(&tv.backward()) {
+            Some(g) => assign_rows(into, rows, g, IndexingUpdateOp::Add),
+            None => into,
+        }
     }
 }
 
@@ -280,6 +284,8 @@ struct Stylizer<'a> {
     background: [f32; 3],
     march: crate::render::MarchParams,
     field: StyleField,
+    /// Empty-space skipping for every march (the density and rows are frozen).
+    occupancy: BlockOccupancy,
     vgg: Vgg16,
     ad: Device,
     device: Device,
@@ -319,8 +325,13 @@ impl Stylizer<'_> {
         }
     }
 
+    /// A marcher on the frozen density's block occupancy (built once per run).
+    fn marcher(&self) -> Marcher<'_> {
+        Marcher::with_occupancy(&self.field.grid, &self.occupancy)
+    }
+
     fn march_camera(&self, camera: &Camera) -> FrozenSamples {
-        FrozenSamples::march(&self.field.grid, &camera.rays(self.ndc.as_ref()), &self.march, self.cfg.min_sample_weight)
+        FrozenSamples::march(&self.marcher(), &camera.rays(self.ndc.as_ref()), &self.march, self.cfg.min_sample_weight)
     }
 
     fn render_view(&self, v: usize) -> Image {
@@ -358,7 +369,7 @@ impl Stylizer<'_> {
             let picks: Vec<usize> = (0..s.ray_batch).map(|_| rng.random_range(0..rays.len())).collect();
             let batch_rays: Vec<Ray> = picks.iter().map(|&i| rays[i]).collect();
             let target = floats(picks.iter().flat_map(|&i| colours[i]).collect(), [picks.len(), 3], &self.device);
-            let samples = FrozenSamples::march(&self.field.grid, &batch_rays, &self.march, self.cfg.min_sample_weight);
+            let samples = FrozenSamples::march(&self.marcher(), &batch_rays, &self.march, self.cfg.min_sample_weight);
             let (grad, mse) = self.mse_gradient(&samples, target, 1.0);
             let grad = self.with_tv(grad, &mut rng);
             self.field.rmsprop(grad, s.lr_refit, s.rmsprop_beta, s.eps);
@@ -388,10 +399,7 @@ impl Stylizer<'_> {
     }
 
     fn with_tv(&self, grad: Tensor<2>, rng: &mut ChaCha8Rng) -> Tensor<2> {
-        match self.field.tv_gradient(self.cfg.loss.tv_sh, self.cfg.loss.tv_fraction, rng) {
-            Some(t) => grad + t,
-            None => grad,
-        }
+        self.field.add_tv_gradient(grad, self.cfg.loss.tv_sh, self.cfg.loss.tv_fraction, rng)
     }
 
     /// Caches sample lists up to the configured memory: first the
@@ -401,8 +409,11 @@ impl Stylizer<'_> {
         // budget, so memory never holds more than the budget plus one chunk.
         let budget = self.cfg.sample_cache_mb * 1024 * 1024;
         let mut used = 0usize;
+        // Built from the fields (not `self.marcher()`) so the closure leaves
+        // `self.registered_samples` and `self.view_samples` free to assign.
+        let marcher = Marcher::with_occupancy(&self.field.grid, &self.occupancy);
         let mut march = |rays: &[Ray]| {
-            let s = FrozenSamples::march_within(&self.field.grid, rays, &self.march, self.cfg.min_sample_weight, frozen::MARCH_CHUNK, budget - used)?;
+            let s = FrozenSamples::march_within(&marcher, rays, &self.march, self.cfg.min_sample_weight, frozen::MARCH_CHUNK, budget - used)?;
             used += s.bytes();
             Some(s)
         };
@@ -443,7 +454,7 @@ impl Stylizer<'_> {
                 Some(cached) => cached.subset(&picks),
                 None => {
                     let rays: Vec<Ray> = picks.iter().map(|&i| self.pixel_ray(self.registered[i].0 as usize, self.registered[i].1 as usize)).collect();
-                    FrozenSamples::march(&self.field.grid, &rays, &self.march, self.cfg.min_sample_weight)
+                    FrozenSamples::march(&self.marcher(), &rays, &self.march, self.cfg.min_sample_weight)
                 }
             };
             groups.push((samples, picks.iter().flat_map(|&i| self.registered[i].2).collect()));
@@ -729,6 +740,7 @@ pub fn run_stylize(job: &StylizeJob) -> Result<StylizeReport> {
         ndc: photo_meta.ndc,
         background: photo_meta.background,
         march: photo_meta.config.march,
+        occupancy: BlockOccupancy::of(&field.grid),
         field,
         vgg: Vgg16::load(&ad),
         ad: ad.clone(),
