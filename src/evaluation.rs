@@ -348,13 +348,13 @@ fn robustness(job: &EvalJob, ck: &Checkpoint, frames: &[SurfaceRender], path_fra
         })?;
         let again = checkpoint::load_with(&out, &ck.grid.device(), false)?;
         let cfg = &again.meta.config;
-        let (mut sum, mut n) = (0.0f64, 0usize);
-        for f in frames {
-            let r = render::render_view(&again.grid, &f.camera, again.meta.ndc.as_ref(), &cfg.march, again.meta.background, cfg.render_chunk);
-            sum += r.rgb.iter().zip(&f.rgb).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>();
-            n += r.rgb.len();
-        }
-        psnrs.push(metrics::psnr_from_mse((sum / n as f64) as f32));
+        // One PSNR over all the path frames' pixels.
+        let restylized: Vec<f32> = frames
+            .iter()
+            .flat_map(|f| render::render_view(&again.grid, &f.camera, again.meta.ndc.as_ref(), &cfg.march, again.meta.background, cfg.render_chunk).rgb)
+            .collect();
+        let run: Vec<f32> = frames.iter().flat_map(|f| f.rgb.iter().copied()).collect();
+        psnrs.push(metrics::psnr(&restylized, &run));
     }
     Ok(psnrs.iter().sum::<f32>() / psnrs.len() as f32)
 }

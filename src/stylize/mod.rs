@@ -325,13 +325,19 @@ impl Stylizer<'_> {
         }
     }
 
-    /// A marcher on the frozen density's block occupancy (built once per run).
-    fn marcher(&self) -> Marcher<'_> {
-        Marcher::with_occupancy(&self.field.grid, &self.occupancy)
+    /// The samples of `rays` (on the frozen density's block occupancy, built
+    /// once per run), or None as soon as they would hold more than `budget` bytes.
+    fn march_rays_within(&self, rays: &[Ray], budget: usize) -> Option<FrozenSamples> {
+        let marcher = Marcher::with_occupancy(&self.field.grid, &self.occupancy);
+        FrozenSamples::march_within(&marcher, rays, &self.march, self.cfg.min_sample_weight, frozen::MARCH_CHUNK, budget)
+    }
+
+    fn march_rays(&self, rays: &[Ray]) -> FrozenSamples {
+        self.march_rays_within(rays, usize::MAX).expect("an unbounded march always fits")
     }
 
     fn march_camera(&self, camera: &Camera) -> FrozenSamples {
-        FrozenSamples::march(&self.marcher(), &camera.rays(self.ndc.as_ref()), &self.march, self.cfg.min_sample_weight)
+        self.march_rays(&camera.rays(self.ndc.as_ref()))
     }
 
     fn render_view(&self, v: usize) -> Image {
@@ -369,7 +375,7 @@ impl Stylizer<'_> {
             let picks: Vec<usize> = (0..s.ray_batch).map(|_| rng.random_range(0..rays.len())).collect();
             let batch_rays: Vec<Ray> = picks.iter().map(|&i| rays[i]).collect();
             let target = floats(picks.iter().flat_map(|&i| colours[i]).collect(), [picks.len(), 3], &self.device);
-            let samples = FrozenSamples::march(&self.marcher(), &batch_rays, &self.march, self.cfg.min_sample_weight);
+            let samples = self.march_rays(&batch_rays);
             let (grad, mse) = self.mse_gradient(&samples, target, 1.0);
             let grad = self.with_tv(grad, &mut rng);
             self.field.rmsprop(grad, s.lr_refit, s.rmsprop_beta, s.eps);
@@ -409,20 +415,15 @@ impl Stylizer<'_> {
         // budget, so memory never holds more than the budget plus one chunk.
         let budget = self.cfg.sample_cache_mb * 1024 * 1024;
         let mut used = 0usize;
-        // Built from the fields (not `self.marcher()`) so the closure leaves
-        // `self.registered_samples` and `self.view_samples` free to assign.
-        let marcher = Marcher::with_occupancy(&self.field.grid, &self.occupancy);
-        let mut march = |rays: &[Ray]| {
-            let s = FrozenSamples::march_within(&marcher, rays, &self.march, self.cfg.min_sample_weight, frozen::MARCH_CHUNK, budget - used)?;
-            used += s.bytes();
-            Some(s)
-        };
         if self.job.method == Method::RefNpr && !self.registered.is_empty() {
             let rays: Vec<Ray> = self.registered.iter().map(|p| self.pixel_ray(p.0 as usize, p.1 as usize)).collect();
-            self.registered_samples = march(&rays);
+            self.registered_samples = self.march_rays_within(&rays, budget);
+            used += self.registered_samples.as_ref().map_or(0, FrozenSamples::bytes);
         }
         for v in 0..self.dataset.train.len() {
-            self.view_samples[v] = march(&self.dataset.train[v].camera.rays(self.ndc.as_ref()));
+            let samples = self.march_rays_within(&self.dataset.train[v].camera.rays(self.ndc.as_ref()), budget - used);
+            used += samples.as_ref().map_or(0, FrozenSamples::bytes);
+            self.view_samples[v] = samples;
         }
     }
 
@@ -454,7 +455,7 @@ impl Stylizer<'_> {
                 Some(cached) => cached.subset(&picks),
                 None => {
                     let rays: Vec<Ray> = picks.iter().map(|&i| self.pixel_ray(self.registered[i].0 as usize, self.registered[i].1 as usize)).collect();
-                    FrozenSamples::march(&self.marcher(), &rays, &self.march, self.cfg.min_sample_weight)
+                    self.march_rays(&rays)
                 }
             };
             groups.push((samples, picks.iter().flat_map(|&i| self.registered[i].2).collect()));
