@@ -3,9 +3,14 @@
 
 /// Peak signal-to-noise ratio in dB.
 pub fn psnr(a: &[f32], b: &[f32]) -> f32 {
+    psnr_from_mse((squared_error(a, b) / a.len() as f64) as f32)
+}
+
+/// Sum of squared differences, in f64: pooled over several images (add the
+/// sums and the value counts) it gives one PSNR over all of them.
+pub fn squared_error(a: &[f32], b: &[f32]) -> f64 {
     assert_eq!(a.len(), b.len());
-    let mse: f64 = a.iter().zip(b).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>() / a.len() as f64;
-    psnr_from_mse(mse as f32)
+    a.iter().zip(b).map(|(x, y)| ((x - y) as f64).powi(2)).sum()
 }
 
 pub fn psnr_from_mse(mse: f32) -> f32 {
