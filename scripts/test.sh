@@ -10,6 +10,10 @@ cd "$(dirname "$0")/.."
 # wgpu (winit) warns when this is unset on headless machines.
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 
+echo "== formatting and lints"
+cargo fmt --check
+cargo clippy --all-targets -- -D warnings
+
 echo "== flex: full suite"
 REFNPR_BACKEND=flex cargo test --all-targets
 

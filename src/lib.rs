@@ -1,36 +1,35 @@
-//! refnpr: reference-based non-photorealistic radiance fields (Ref-NPR) on Burn.
+//! refnpr: reference-based non-photorealistic radiance fields (Ref-NPR, CVPR
+//! 2023) on Burn. The folders are the pipeline, in order:
 //!
-//! Stages, each a module with one job: `data` (scenes), `grid` + `render`
-//! (the radiance field and its differentiable volume renderer), `train`
-//! (photorealistic fitting), `checkpoint`, `metrics`, `imageio`, `vgg`
-//! (the ONNX-imported VGG16 feature extractor, generated code in `vgg_model`)
-//! and `features` (cosine nearest-neighbour search over its feature maps).
+//! | module | stage |
+//! | --- | --- |
+//! | `scene` | cameras, rays, NDC, camera paths, the SH basis; dataset loaders (Blender, LLFF, NSVF, the procedural scene) |
+//! | `field` | the radiance grid, ray marching (plain Rust), compositing (Burn graph), the frozen-density colour renderer, what the optimisers share (RMSprop, TV, row subsets), checkpoints |
+//! | `photo` | stage 1: fitting the photorealistic field (config, `Trainer::step_once`, the training run) |
+//! | `reference` | stage 2: reference cases and style images, R³ (plain Rust), the `reference` / `register` commands |
+//! | `vgg` | the ONNX-imported VGG16, block descriptors and nearest neighbours |
+//! | `stylize` | stage 3: Ref-NPR (R³ + TCM + colour matching) and the ARF baseline: config, losses, TCM, the style field, the `Stylizer` and its image step, the run |
+//! | `eval` | image metrics, photoreal and stylization metrics, camera-path renders |
+//! | `tools` | the benchmarks, the one-command demo, the painterly repaint filter |
+//! | `util` | backend choice, tensor helpers, the one `Image` type and its files, file writes, progress events, per-step RNG, memory readings |
+//!
+//! Every stage reads and writes files (dataset folder -> `RUN/checkpoint.bin`
+//! -> `CASE/` -> `registration.bin` -> `STYLE/checkpoint.bin` -> renders), so
+//! the `refnpr` binary is a thin layer of one call per subcommand. Library
+//! code never prints: long work reports to a `util::progress::Progress` sink.
 
-pub mod backend;
-pub mod bench;
-pub mod binfile;
-pub mod camera;
-pub mod checkpoint;
-pub mod colour_transfer;
-pub mod config;
-pub mod data;
-pub mod demo;
-pub mod evaluation;
-pub mod features;
-pub mod grid;
-pub mod imageio;
-pub mod metrics;
-pub mod paint;
-pub mod render;
+// Library code reports through `util::progress`; only the `Console` sink prints.
+#![warn(clippy::print_stdout, clippy::print_stderr)]
+
+pub mod eval;
+pub mod field;
+pub mod photo;
 pub mod reference;
-pub mod register;
-pub mod registration;
-pub mod render_path;
-pub mod sh;
+pub mod scene;
 pub mod stylize;
-pub mod tensor_util;
-pub mod train;
+pub mod tools;
+pub mod util;
 pub mod vgg;
-pub mod vgg_model;
 
-pub use backend::BackendKind;
+pub use util::backend::BackendKind;
+pub use util::progress::{Console, Progress, Quiet};

@@ -5,7 +5,8 @@ mod common;
 
 use common::TempDir;
 use glam::{Mat4, Vec3};
-use refnpr::data::{self, DatasetKind, LoadOptions, npy, procedural};
+use refnpr::scene::data::{self, DatasetKind, LoadOptions, procedural};
+use refnpr::util::npy;
 use serde_json::json;
 use std::path::Path;
 
@@ -15,7 +16,7 @@ fn write_png(path: &Path, w: u32, h: u32, rgba: [u8; 4]) {
 }
 
 fn pose(eye: Vec3) -> [[f32; 4]; 4] {
-    refnpr::camera::look_at(eye, Vec3::ZERO, Vec3::Z).transpose().to_cols_array_2d()
+    refnpr::scene::camera::look_at(eye, Vec3::ZERO, Vec3::Z).transpose().to_cols_array_2d()
 }
 
 /// A 3-split Blender fixture with `n` frames per split.
@@ -93,7 +94,7 @@ fn llff_loader_holds_out_every_eighth_image_and_uses_ndc() {
     assert!((ndc.focal - 50.0 * 8.0 / 64.0).abs() < 1e-4);
     // Recentred: the average pose is the identity.
     let poses: Vec<Mat4> = ds.train.iter().chain(&ds.test).map(|v| v.camera.c2w).collect();
-    let avg = refnpr::camera::average_pose(&poses);
+    let avg = refnpr::scene::camera::average_pose(&poses);
     assert!(avg.abs_diff_eq(Mat4::IDENTITY, 1e-4), "{avg:?}");
     let (near, _far) = ds.near_far.unwrap();
     assert!((near - 1.0 / 0.75).abs() < 1e-4);
@@ -113,7 +114,11 @@ fn nsvf_loader_splits_by_prefix_and_normalises_the_box() {
     for (i, name) in ["0_000", "0_001", "1_000", "2_000"].iter().enumerate() {
         write_png(&t.path().join("rgb").join(format!("{name}.png")), 8, 6, [1, 2, 3, 255]);
         let z = 4.0 + i as f32;
-        std::fs::write(t.path().join("pose").join(format!("{name}.txt")), format!("1 0 0 0\n0 1 0 0\n0 0 1 {z}\n0 0 0 1\n")).unwrap();
+        std::fs::write(
+            t.path().join("pose").join(format!("{name}.txt")),
+            format!("1 0 0 0\n0 1 0 0\n0 0 1 {z}\n0 0 0 1\n"),
+        )
+        .unwrap();
     }
     let ds = data::load(t.path(), &LoadOptions::default()).unwrap();
     assert_eq!(ds.kind, DatasetKind::Nsvf);
@@ -184,7 +189,8 @@ fn bad_inputs_give_errors_that_name_the_file() {
     let e = err_of(t.path());
     assert!(e.contains("not invertible"), "{e}");
     // Empty split.
-    std::fs::write(t.path().join("transforms_train.json"), json!({"camera_angle_x": 0.69, "frames": []}).to_string()).unwrap();
+    std::fs::write(t.path().join("transforms_train.json"), json!({"camera_angle_x": 0.69, "frames": []}).to_string())
+        .unwrap();
     let e = err_of(t.path());
     assert!(e.contains("no frames") || e.contains("empty"), "{e}");
 }

@@ -4,10 +4,10 @@
 mod common;
 
 use glam::{Mat4, Vec3};
-use refnpr::camera::{Camera, Intrinsics, look_at};
-use refnpr::evaluation::{self, SurfaceRender, Tolerance};
-use refnpr::stylize::tcm::Image;
-use refnpr::tensor_util::floats;
+use refnpr::eval::stylization::{self, SurfaceRender, Tolerance};
+use refnpr::scene::camera::{Camera, Intrinsics, look_at};
+use refnpr::util::image::Image;
+use refnpr::util::tensor::floats;
 use refnpr::vgg::{FeatureMaps, Vgg16, VggLayer};
 
 #[test]
@@ -17,7 +17,7 @@ fn masked_psnr_matches_hand_value() {
     let b = vec![0.3, 0.3, 0.3, 0.4, 0.4, 0.4, 0.5, 0.5, 0.5];
     let (sum, n) = evaluation::psnr_masked(&a, &b, &[true, true, false]).expect("masked pixels");
     assert_eq!(n, 6);
-    let psnr = refnpr::metrics::psnr_from_mse((sum / n as f64) as f32);
+    let psnr = refnpr::eval::metrics::psnr_from_mse((sum / n as f64) as f32);
     assert!((psnr - 20.0).abs() < 1e-3, "{psnr}");
     assert!(evaluation::psnr_masked(&a, &b, &[false; 3]).is_none());
 }
@@ -33,7 +33,11 @@ fn normalised_feature_distance_matches_hand_value() {
     let fb = FeatureMaps::from_maps([(VggLayer::Relu1_2, b)]);
     let v = evaluation::normalised_feature_distance(&fa, &fb, &[VggLayer::Relu1_2]);
     assert!((v - 1.0).abs() < 1e-5, "{v}");
-    let same = evaluation::normalised_feature_distance(&fa, &FeatureMaps::from_maps([(VggLayer::Relu1_2, a)]), &[VggLayer::Relu1_2]);
+    let same = evaluation::normalised_feature_distance(
+        &fa,
+        &FeatureMaps::from_maps([(VggLayer::Relu1_2, a)]),
+        &[VggLayer::Relu1_2],
+    );
     assert!(same.abs() < 1e-6, "{same}");
 }
 
@@ -42,7 +46,11 @@ fn perceptual_distance_is_zero_for_the_same_image_and_grows_with_change() {
     let d = common::device();
     let vgg = Vgg16::load(&d);
     let (w, h) = (40, 36);
-    let img = |shift: f32| Image { width: w, height: h, rgb: (0..w * h * 3).map(|i| (((i / 3) % w) as f32 / w as f32 + shift * ((i % 3) as f32)).fract()).collect() };
+    let img = |shift: f32| Image {
+        width: w,
+        height: h,
+        rgb: (0..w * h * 3).map(|i| (((i / 3) % w) as f32 / w as f32 + shift * ((i % 3) as f32)).fract()).collect(),
+    };
     let a = img(0.0);
     let zero = evaluation::perceptual_distance(&vgg, &a, &a, &d).unwrap();
     let small = evaluation::perceptual_distance(&vgg, &a, &img(0.05), &d).unwrap();
@@ -78,7 +86,8 @@ fn visibility_and_warping_follow_the_geometry() {
     let on_plane = Some(Vec3::new(0.2, -0.1, 0.0));
     let behind_plane = Some(Vec3::new(0.2, -0.1, -0.5));
     let outside = Some(Vec3::new(30.0, 0.0, 0.0));
-    let seen = evaluation::visible_from(&[on_plane, behind_plane, outside, None], std::slice::from_ref(&reference), TOL);
+    let seen =
+        evaluation::visible_from(&[on_plane, behind_plane, outside, None], std::slice::from_ref(&reference), TOL);
     assert_eq!(seen, vec![true, false, false, false]);
 
     // A view-independent texture warps without error between two views of the plane ...
@@ -99,14 +108,17 @@ fn visibility_and_warping_follow_the_geometry() {
 
 #[test]
 fn nearest_cameras_are_sorted_by_distance() {
-    let cams: Vec<Camera> = [5.0f32, 1.0, 3.0, 2.0].iter().map(|&x| Camera::new(Intrinsics::from_fov_x(8, 8, 0.9), Mat4::from_translation(Vec3::new(x, 0.0, 0.0)))).collect();
+    let cams: Vec<Camera> = [5.0f32, 1.0, 3.0, 2.0]
+        .iter()
+        .map(|&x| Camera::new(Intrinsics::from_fov_x(8, 8, 0.9), Mat4::from_translation(Vec3::new(x, 0.0, 0.0))))
+        .collect();
     let to = Camera::new(Intrinsics::from_fov_x(8, 8, 0.9), Mat4::from_translation(Vec3::new(0.0, 0.0, 0.0)));
     assert_eq!(evaluation::nearest_cameras(&cams, &to, 3), vec![1, 3, 2]);
 }
 
 #[test]
 fn ndc_points_map_back_onto_their_world_ray() {
-    use refnpr::camera::{NdcParams, Ray, from_ndc, to_ndc};
+    use refnpr::scene::camera::{NdcParams, Ray, from_ndc, to_ndc};
     let p = NdcParams { width: 40.0, height: 30.0, focal: 35.0, near: 1.0 };
     let dir = Vec3::new(0.1, -0.05, -1.0).normalize();
     let ray = Ray { origin: Vec3::new(0.2, 0.1, 0.0), dir, view_dir: dir };

@@ -6,8 +6,8 @@
 
 mod common;
 
-use refnpr::config::TrainConfig;
-use refnpr::data::{self, DatasetKind};
+use refnpr::photo::config::TrainConfig;
+use refnpr::scene::data::{self, DatasetKind};
 use std::path::PathBuf;
 
 fn shared(rel: &str) -> PathBuf {
@@ -74,7 +74,7 @@ fn lego_short_fit_learns_the_object() {
     let mut ds = data::load(&dir, &cfg.data).unwrap();
     ds.test.truncate(3);
     let out = std::env::temp_dir().join(format!("refnpr-lego-{}", std::process::id()));
-    let m = refnpr::train::run_training(&ds, cfg, &out, common::backend(), false).unwrap();
+    let m = refnpr::photo::run::run_training(&ds, cfg, &out, common::backend(), false, &refnpr::Quiet).unwrap();
     std::fs::remove_dir_all(&out).ok();
     eprintln!("lego short fit: {:.2} dB", m.test_psnr);
     assert!(m.test_psnr > 21.0, "lego short fit reached only {:.2} dB", m.test_psnr);

@@ -4,8 +4,8 @@
 mod common;
 
 use common::TempDir;
-use refnpr::data::{self, procedural};
-use refnpr::reference::{ReferenceCase, ViewSpec, read_style};
+use refnpr::reference::case::{ReferenceCase, ViewSpec, read_style};
+use refnpr::scene::data::{self, procedural};
 use std::path::Path;
 
 fn tiny_dataset(dir: &Path) -> data::Dataset {
@@ -44,7 +44,10 @@ fn authors_data_config_is_read_unchanged() {
     )
     .unwrap();
     let case = ReferenceCase::load(t.path()).unwrap();
-    assert_eq!(case.references.iter().map(|r| r.view.clone()).collect::<Vec<_>>(), vec![ViewSpec::Path(5), ViewSpec::Path(60)]);
+    assert_eq!(
+        case.references.iter().map(|r| r.view.clone()).collect::<Vec<_>>(),
+        vec![ViewSpec::Path(5), ViewSpec::Path(60)]
+    );
     assert!(case.color_pre, "color_pre defaults to true");
 }
 
@@ -106,12 +109,20 @@ intrinsics = { width = 32, height = 32, fx = 40.0, fy = 40.0, cx = 16.0, cy = 16
     assert!("train:x".parse::<ViewSpec>().is_err());
 
     // A case made for another scene is reported.
-    std::fs::write(case_dir.join("reference.toml"), "scene_name = \"fern\"\n[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\n").unwrap();
+    std::fs::write(
+        case_dir.join("reference.toml"),
+        "scene_name = \"fern\"\n[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\n",
+    )
+    .unwrap();
     let case = ReferenceCase::load(&case_dir).unwrap();
     assert!(case.scene_mismatch(&ds).unwrap().contains("fern"));
 
     // Unknown keys and half-given cameras are errors.
-    std::fs::write(case_dir.join("reference.toml"), "[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\nweight = 2\n").unwrap();
+    std::fs::write(
+        case_dir.join("reference.toml"),
+        "[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\nweight = 2\n",
+    )
+    .unwrap();
     assert!(format!("{:#}", ReferenceCase::load(&case_dir).unwrap_err()).contains("weight"));
     std::fs::write(case_dir.join("reference.toml"), "[[reference]]\nstyle = \"style.png\"\nc2w = [[1.0,0.0,0.0,0.0],[0.0,1.0,0.0,0.0],[0.0,0.0,1.0,0.0],[0.0,0.0,0.0,1.0]]\n").unwrap();
     assert!(format!("{:#}", ReferenceCase::load(&case_dir).unwrap_err()).contains("both `c2w` and `intrinsics`"));

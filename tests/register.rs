@@ -5,9 +5,9 @@
 mod common;
 
 use glam::Vec3;
-use refnpr::camera::Camera;
-use refnpr::data::procedural::{self, Scene, SceneOptions};
-use refnpr::register::{Dictionary, Reference, RegisterParams, Surface, register_view};
+use refnpr::reference::r3::{Dictionary, Reference, RegisterParams, Surface, register_view};
+use refnpr::scene::camera::Camera;
+use refnpr::scene::data::procedural::{self, Scene, SceneOptions};
 
 struct GtView {
     camera: Camera,
@@ -60,14 +60,28 @@ fn score(references: &[&GtView], views: &[GtView], params: &RegisterParams) -> S
 
 /// Registers with `ref_surfaces` / `view_surfaces` (ground truth or a trained
 /// field's depth) and judges every pixel by the ground truth in the GtViews.
-fn score_with(references: &[&GtView], ref_surfaces: &[Surface], views: &[GtView], view_surfaces: &[Surface], params: &RegisterParams) -> Score {
+fn score_with(
+    references: &[&GtView],
+    ref_surfaces: &[Surface],
+    views: &[GtView],
+    view_surfaces: &[Surface],
+    params: &RegisterParams,
+) -> Score {
     let refs: Vec<Reference> = references
         .iter()
         .zip(ref_surfaces)
         .map(|(r, surface)| Reference { surface: surface.clone(), colours: r.style.clone() })
         .collect();
     let dict = Dictionary::build(&refs, params).expect("the reference sees the scene");
-    let mut s = Score { registered: 0, correct: 0, hidden: 0, hidden_registered: 0, visible: 0, visible_in_angle: 0, registered_in_angle: 0 };
+    let mut s = Score {
+        registered: 0,
+        correct: 0,
+        hidden: 0,
+        hidden_registered: 0,
+        visible: 0,
+        visible_in_angle: 0,
+        registered_in_angle: 0,
+    };
     for (v, surface) in views.iter().zip(view_surfaces) {
         let reg = register_view(&dict, surface, params);
         let mut registered = vec![None; v.surface.points.len()];
@@ -162,11 +176,18 @@ fn multi_reference_both_contribute() {
 fn angle_threshold_rejects_what_it_should() {
     let point = Vec3::new(0.1, 0.2, 0.3);
     let reference = Reference {
-        surface: Surface { width: 1, height: 1, points: vec![Some(point)], dirs: vec![Vec3::X], rays: vec![(point - Vec3::X, Vec3::X)] },
+        surface: Surface {
+            width: 1,
+            height: 1,
+            points: vec![Some(point)],
+            dirs: vec![Vec3::X],
+            rays: vec![(point - Vec3::X, Vec3::X)],
+        },
         colours: vec![[1.0, 0.0, 0.0]],
     };
     let dirs: Vec<Vec3> = [0.9f32, 0.5, -0.8].iter().map(|&c| Vec3::new(c, (1.0 - c * c).sqrt(), 0.0)).collect();
-    let view = Surface { width: 3, height: 1, points: vec![Some(point); 3], rays: vec![(Vec3::ZERO, Vec3::X); 3], dirs };
+    let view =
+        Surface { width: 3, height: 1, points: vec![Some(point); 3], rays: vec![(Vec3::ZERO, Vec3::X); 3], dirs };
     for (threshold, expected) in [(0.6, vec![0u32]), (0.3, vec![0, 1]), (-0.9, vec![0, 1, 2])] {
         let params = RegisterParams { cos_threshold: threshold, ..Default::default() };
         let dict = Dictionary::build(std::slice::from_ref(&reference), &params).unwrap();
@@ -183,7 +204,13 @@ fn distance_threshold_and_sparse_storage() {
     // Two stored points one unit apart: the dictionary box is 1 unit, voxel 1/512.
     let rays = vec![(Vec3::new(0.0, 0.0, -1.0), Vec3::Z), (Vec3::new(1.0, 0.0, -1.0), Vec3::Z)];
     let reference = Reference {
-        surface: Surface { width: 2, height: 1, points: vec![Some(Vec3::ZERO), Some(Vec3::X)], dirs: vec![Vec3::Z; 2], rays },
+        surface: Surface {
+            width: 2,
+            height: 1,
+            points: vec![Some(Vec3::ZERO), Some(Vec3::X)],
+            dirs: vec![Vec3::Z; 2],
+            rays,
+        },
         colours: vec![[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
     };
     let dict = Dictionary::build(std::slice::from_ref(&reference), &params).unwrap();
@@ -191,7 +218,13 @@ fn distance_threshold_and_sparse_storage() {
     let v = dict.voxel_size();
     let near = Vec3::new(1.0 * v, 0.0, 0.0);
     let far = Vec3::new(3.0 * v, 0.0, 0.0);
-    let view = Surface { width: 3, height: 1, points: vec![Some(near), Some(far), None], dirs: vec![Vec3::Z; 3], rays: vec![(Vec3::ZERO, Vec3::Z); 3] };
+    let view = Surface {
+        width: 3,
+        height: 1,
+        points: vec![Some(near), Some(far), None],
+        dirs: vec![Vec3::Z; 3],
+        rays: vec![(Vec3::ZERO, Vec3::Z); 3],
+    };
     let reg = register_view(&dict, &view, &params);
     assert_eq!(reg.pixels, vec![0]);
     assert_eq!(reg.colours, vec![[0.0, 1.0, 0.0]]);
@@ -201,7 +234,13 @@ fn distance_threshold_and_sparse_storage() {
 #[test]
 fn no_reference_hits_gives_no_dictionary() {
     let reference = Reference {
-        surface: Surface { width: 1, height: 1, points: vec![None], dirs: vec![Vec3::Z], rays: vec![(Vec3::ZERO, Vec3::Z)] },
+        surface: Surface {
+            width: 1,
+            height: 1,
+            points: vec![None],
+            dirs: vec![Vec3::Z],
+            rays: vec![(Vec3::ZERO, Vec3::Z)],
+        },
         colours: vec![[0.0; 3]],
     };
     assert!(Dictionary::build(&[reference], &RegisterParams::default()).is_none());
@@ -216,8 +255,8 @@ fn no_reference_hits_gives_no_dictionary() {
 /// (measured 3.0 %), coverage within the angle threshold >= 60 % (79 %).
 #[test]
 fn registration_with_trained_depth() {
-    use refnpr::config::TrainConfig;
-    use refnpr::data::{self, DatasetKind};
+    use refnpr::photo::config::TrainConfig;
+    use refnpr::scene::data::{self, DatasetKind};
     let t = common::TempDir::new("r3");
     let opts = SceneOptions { seed: 2, size: 96, num_train: 24, num_val: 1, num_test: 2 };
     procedural::write_scene(&t.path().join("scene"), &opts).unwrap();
@@ -232,11 +271,12 @@ fn registration_with_trained_depth() {
     c.optim.lr_delay_steps = 20;
     c.checkpoint_every = 600;
     let run = t.path().join("run");
-    let m = refnpr::train::run_training(&ds, c, &run, common::backend(), false).unwrap();
-    let ck = refnpr::checkpoint::load(&run, &common::device()).unwrap();
+    let m = refnpr::photo::run::run_training(&ds, c, &run, common::backend(), false, &refnpr::Quiet).unwrap();
+    let ck = refnpr::field::checkpoint::load(&run, &common::device()).unwrap();
     let scene = Scene::new(opts.seed);
     let views: Vec<GtView> = ds.train.iter().map(|v| gt_view(&scene, v.camera)).collect();
-    let fitted: Vec<Surface> = ds.train.iter().map(|v| refnpr::registration::field_surface(&ck, &v.camera)).collect();
+    let fitted: Vec<Surface> =
+        ds.train.iter().map(|v| refnpr::reference::registration::field_surface(&ck, &v.camera)).collect();
     let params = RegisterParams::default();
     let s = score_with(&[&views[0]], &fitted[..1], &views[1..], &fitted[1..], &params);
     let acc = s.correct as f32 / s.registered as f32;
@@ -259,7 +299,10 @@ fn registration_with_trained_depth() {
 fn parameter_sweep() {
     let (scene, cams) = scene_views();
     let views: Vec<GtView> = cams.iter().map(|c| gt_view(&scene, *c)).collect();
-    println!("{:>8} {:>5} {:>5} {:>7} {:>10} {:>9} {:>9} {:>9}", "dict_res", "cap", "K", "cos", "registered", "coverage", "accuracy", "false");
+    println!(
+        "{:>8} {:>5} {:>5} {:>7} {:>10} {:>9} {:>9} {:>9}",
+        "dict_res", "cap", "K", "cos", "registered", "coverage", "accuracy", "false"
+    );
     for (dict_res, cap, k, cos) in [
         (512, false, 1, 0.3),
         (512, false, 8, 0.6),
@@ -270,7 +313,8 @@ fn parameter_sweep() {
         (512, true, 8, 0.8),
         (256, true, 8, 0.6),
     ] {
-        let params = RegisterParams { dict_res, cap_to_footprint: cap, per_voxel: k, cos_threshold: cos, ..Default::default() };
+        let params =
+            RegisterParams { dict_res, cap_to_footprint: cap, per_voxel: k, cos_threshold: cos, ..Default::default() };
         let s = score(&[&views[0]], &views[1..], &params);
         println!(
             "{dict_res:>8} {cap:>5} {k:>5} {cos:>7.2} {:>10} {:>9.3} {:>9.4} {:>9.4}",
@@ -288,10 +332,10 @@ fn parameter_sweep() {
 /// nothing registered, not a crash).
 #[test]
 fn register_command_writes_its_outputs_and_survives_a_camera_looking_away() {
-    use refnpr::config::TrainConfig;
-    use refnpr::data::{self, DatasetKind};
-    use refnpr::reference::ReferenceCase;
-    use refnpr::registration::{RegistrationFile, run_register, write_reference_skeleton};
+    use refnpr::photo::config::TrainConfig;
+    use refnpr::reference::case::ReferenceCase;
+    use refnpr::reference::registration::{RegistrationFile, run_register, write_reference_skeleton};
+    use refnpr::scene::data::{self, DatasetKind};
     let t = common::TempDir::new("r3-cmd");
     let opts = SceneOptions { seed: 3, size: 32, num_train: 8, num_val: 1, num_test: 1 };
     let scene_dir = t.path().join("scene");
@@ -306,8 +350,8 @@ fn register_command_writes_its_outputs_and_survives_a_camera_looking_away() {
     c.optim.batch_rays = 1024;
     c.checkpoint_every = 60;
     let run = t.path().join("run");
-    refnpr::train::run_training(&ds, c, &run, common::backend(), false).unwrap();
-    let ck = refnpr::checkpoint::load(&run, &common::device()).unwrap();
+    refnpr::photo::run::run_training(&ds, c, &run, common::backend(), false, &refnpr::Quiet).unwrap();
+    let ck = refnpr::field::checkpoint::load(&run, &common::device()).unwrap();
 
     // `refnpr reference`: content view, depth and a skeleton naming style.png.
     let case = t.path().join("case");
@@ -319,15 +363,20 @@ fn register_command_writes_its_outputs_and_survives_a_camera_looking_away() {
     std::fs::copy(scene_dir.join("stylized/train/r_2.png"), case.join("style.png")).unwrap();
     let loaded = ReferenceCase::load(&case).unwrap();
     let out = t.path().join("r3");
-    let report = run_register(&ck, &ds, &loaded, &Default::default(), &out, 3).unwrap();
+    let report = run_register(&ck, &ds, &loaded, &Default::default(), &out, 3, &refnpr::Quiet).unwrap();
     assert_eq!(report.fraction_per_view.len(), 8);
-    assert!(report.fraction_per_view[2] > 0.9, "the reference view registers onto itself: {:?}", report.fraction_per_view);
+    assert!(
+        report.fraction_per_view[2] > 0.9,
+        "the reference view registers onto itself: {:?}",
+        report.fraction_per_view
+    );
     assert!(report.fraction_overall > 0.1 && report.registered_pixels > 0);
     let file = RegistrationFile::load(&out).unwrap();
     assert_eq!(file.views.len(), 8);
     assert_eq!(file.references.len(), 1);
     assert_eq!(file.views.iter().map(|v| v.registration.pixels.len()).sum::<usize>(), report.registered_pixels);
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("register.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("register.json")).unwrap()).unwrap();
     for key in ["fraction_per_view", "fraction_overall", "register_seconds", "dictionary_seconds", "depth_seconds"] {
         assert!(json.get(key).is_some(), "register.json lacks {key}");
     }
@@ -339,7 +388,8 @@ fn register_command_writes_its_outputs_and_survives_a_camera_looking_away() {
                 intrinsics = { width = 32, height = 32, fx = 40.0, fy = 40.0, cx = 16.0, cy = 16.0 }\n";
     std::fs::write(case.join("reference.toml"), away).unwrap();
     let loaded = ReferenceCase::load(&case).unwrap();
-    let report = run_register(&ck, &ds, &loaded, &Default::default(), &t.path().join("r3-away"), 0).unwrap();
+    let report =
+        run_register(&ck, &ds, &loaded, &Default::default(), &t.path().join("r3-away"), 0, &refnpr::Quiet).unwrap();
     assert_eq!(report.registered_pixels, 0);
     assert!(report.warnings.iter().any(|w| w.contains("sees nothing")), "{:?}", report.warnings);
 }

@@ -3,13 +3,14 @@
 
 mod common;
 
-use glam::{Mat4, Vec3};
-use refnpr::camera::{Camera, Intrinsics, Ray};
-use refnpr::grid::{GridGeometry, RadianceGrid};
-use refnpr::render::{self, BatchTensors, MarchParams};
-use refnpr::sh;
 use burn::tensor::Tensor;
-use refnpr::tensor_util::{floats, to_vec};
+use glam::{Mat4, Vec3};
+use refnpr::field::composite::{self as render, BatchTensors};
+use refnpr::field::grid::{GridGeometry, RadianceGrid};
+use refnpr::field::march::{self, MarchParams};
+use refnpr::scene::camera::{Camera, Intrinsics, Ray};
+use refnpr::scene::sh;
+use refnpr::util::tensor::{floats, to_vec};
 
 fn params(step: f32) -> MarchParams {
     MarchParams { step, sigma_threshold: 0.0, stop_threshold: 1e-7, depth_threshold: std::f32::consts::LN_2 }
@@ -39,12 +40,17 @@ fn homogeneous_slab_matches_beer_lambert() {
     let (sigma, c, bg) = (0.8f32, [0.9f32, 0.3, 0.1], [0.2f32, 0.4, 1.0]);
     let grid = uniform_grid(16, sigma, c, 0);
     let rays = vec![axis_ray(Vec3::new(0.1, -0.2, 5.0), -Vec3::Z), axis_ray(Vec3::new(-3.0, 0.3, 0.05), Vec3::X)];
-    let (rgb, depth, tdepth, opacity) = render::render_rays(&grid, &rays, &params(0.5), bg, 1024);
+    let render::RaysRender { rgb, expected_depth: depth, threshold_depth: tdepth, opacity } =
+        render::render_rays(&grid, &rays, &params(0.5), bg, 1024);
     let t_final = (-sigma * 2.0f32).exp();
     for r in 0..2 {
         for ch in 0..3 {
             let want = c[ch] * (1.0 - t_final) + bg[ch] * t_final;
-            assert!((rgb[r * 3 + ch] - want).abs() < common::tol(1e-5), "ray {r} ch {ch}: {} vs {want}", rgb[r * 3 + ch]);
+            assert!(
+                (rgb[r * 3 + ch] - want).abs() < common::tol(1e-5),
+                "ray {r} ch {ch}: {} vs {want}",
+                rgb[r * 3 + ch]
+            );
         }
         assert!((opacity[r] - (1.0 - t_final)).abs() < common::tol(1e-5));
         // Expected depth of a homogeneous slab (discrete sum over the 32 samples).
@@ -63,7 +69,7 @@ fn homogeneous_slab_matches_beer_lambert() {
         assert!((tdepth[r].unwrap() - want_t).abs() < 1e-4, "{:?} vs {want_t}", tdepth[r]);
     }
     // The depth-only march (R³'s) gives the same answer.
-    assert_eq!(render::threshold_depths(&grid, &rays, &params(0.5)), tdepth);
+    assert_eq!(march::threshold_depths(&grid, &rays, &params(0.5)), tdepth);
 }
 
 #[test]
@@ -78,7 +84,8 @@ fn single_opaque_voxel_blocks_only_the_rays_through_it() {
     let hit = axis_ray(Vec3::new(p.x, p.y, 3.0), -Vec3::Z);
     let miss = axis_ray(Vec3::new(p.x + 0.6, p.y, 3.0), -Vec3::Z);
     let bg = [1.0, 1.0, 1.0];
-    let (rgb, _, tdepth, opacity) = render::render_rays(&grid, &[hit, miss], &params(0.25), bg, 64);
+    let render::RaysRender { rgb, threshold_depth: tdepth, opacity, .. } =
+        render::render_rays(&grid, &[hit, miss], &params(0.25), bg, 64);
     for ch in 0..3 {
         assert!((rgb[ch] - c[ch]).abs() < 1e-3, "hit colour {:?}", &rgb[..3]);
         assert!((rgb[3 + ch] - 1.0).abs() < 1e-6, "miss colour {:?}", &rgb[3..]);
@@ -93,11 +100,14 @@ fn single_opaque_voxel_blocks_only_the_rays_through_it() {
 #[test]
 fn full_image_render_is_chunk_independent() {
     let grid = uniform_grid(8, 1.5, [0.5, 0.6, 0.7], 1);
-    let cam = Camera::new(Intrinsics::from_fov_x(24, 18, 0.9), refnpr::camera::look_at(Vec3::new(2.5, 2.0, 1.5), Vec3::ZERO, Vec3::Z));
+    let cam = Camera::new(
+        Intrinsics::from_fov_x(24, 18, 0.9),
+        refnpr::scene::camera::look_at(Vec3::new(2.5, 2.0, 1.5), Vec3::ZERO, Vec3::Z),
+    );
     let a = render::render_view(&grid, &cam, None, &params(0.5), [1.0; 3], 7);
     let b = render::render_view(&grid, &cam, None, &params(0.5), [1.0; 3], 100_000);
-    assert_eq!(a.rgb.len(), 24 * 18 * 3);
-    for (x, y) in a.rgb.iter().zip(&b.rgb) {
+    assert_eq!(a.image.rgb.len(), 24 * 18 * 3);
+    for (x, y) in a.image.rgb.iter().zip(&b.image.rgb) {
         assert!((x - y).abs() < 1e-5);
     }
     let _ = Mat4::IDENTITY;
@@ -120,12 +130,17 @@ fn autodiff_gradients_match_finite_differences() {
         })
         .collect();
     let p = params(0.5);
-    let batch = render::generate_samples(&grid, &rays, &p);
+    let batch = march::generate_samples(&grid, &rays, &p);
     assert!(batch.num_samples() > 20);
     let bt = BatchTensors::new(&batch, None, &dev);
     let weights: Vec<f32> = (0..rays.len() * 3).map(|i| 0.3 + ((i * 31) % 7) as f32 / 7.0).collect();
     let loss_of = |d: &[f32], s: &[f32]| -> f32 {
-        let out = render::composite(floats(d.to_vec(), [n, 1], &dev), floats(s.to_vec(), [n, 3 * nb], &dev), &bt, [0.5, 0.5, 0.5]);
+        let out = render::composite(
+            floats(d.to_vec(), [n, 1], &dev),
+            floats(s.to_vec(), [n, 3 * nb], &dev),
+            &bt,
+            [0.5, 0.5, 0.5],
+        );
         let l = (out.rgb * floats(weights.clone(), [rays.len(), 3], &dev)).sum();
         to_vec(l)[0]
     };
@@ -142,20 +157,14 @@ fn autodiff_gradients_match_finite_differences() {
     let mut order: Vec<usize> = (0..n).collect();
     order.sort_by(|&a, &b| gd[b].abs().total_cmp(&gd[a].abs()));
     for &i in order.iter().take(8) {
-        let (mut up, mut dn) = (dens.clone(), dens.clone());
-        up[i] += h;
-        dn[i] -= h;
-        let fd = (loss_of(&up, &shd) - loss_of(&dn, &shd)) / (2.0 * h);
+        let fd = common::central_difference(&dens, i, h, |d| loss_of(d, &shd) as f64) as f32;
         assert!((fd - gd[i]).abs() < 2e-2 * gd[i].abs().max(1e-2), "density {i}: autodiff {} fd {fd}", gd[i]);
         checked += 1;
     }
     let mut order: Vec<usize> = (0..gs.len()).collect();
     order.sort_by(|&a, &b| gs[b].abs().total_cmp(&gs[a].abs()));
     for &i in order.iter().take(8) {
-        let (mut up, mut dn) = (shd.clone(), shd.clone());
-        up[i] += h;
-        dn[i] -= h;
-        let fd = (loss_of(&dens, &up) - loss_of(&dens, &dn)) / (2.0 * h);
+        let fd = common::central_difference(&shd, i, h, |s| loss_of(&dens, s) as f64) as f32;
         assert!((fd - gs[i]).abs() < 2e-2 * gs[i].abs().max(1e-2), "sh {i}: autodiff {} fd {fd}", gs[i]);
         checked += 1;
     }
@@ -166,15 +175,15 @@ fn autodiff_gradients_match_finite_differences() {
 /// renderer's equation-4 depth on a sparse grid, hits and misses alike.
 #[test]
 fn depth_march_with_block_skipping_equals_the_renderer() {
-    let grid = refnpr::bench::sphere_grid(64, &common::device());
-    let cam = refnpr::camera::Camera::new(
-        refnpr::camera::Intrinsics::from_fov_x(40, 40, 0.9),
-        refnpr::camera::look_at(Vec3::new(2.2, 1.0, 0.8), Vec3::ZERO, Vec3::Z),
+    let grid = refnpr::field::grid::sphere_grid(64, &common::device());
+    let cam = refnpr::scene::camera::Camera::new(
+        refnpr::scene::camera::Intrinsics::from_fov_x(40, 40, 0.9),
+        refnpr::scene::camera::look_at(Vec3::new(2.2, 1.0, 0.8), Vec3::ZERO, Vec3::Z),
     );
     let rays = cam.rays(None);
-    let p = render::MarchParams::default();
-    let (_, _, tdepth, _) = render::render_rays(&grid, &rays, &p, [1.0; 3], 4096);
-    let fast = render::threshold_depths(&grid, &rays, &p);
+    let p = MarchParams::default();
+    let tdepth = render::render_rays(&grid, &rays, &p, [1.0; 3], 4096).threshold_depth;
+    let fast = march::threshold_depths(&grid, &rays, &p);
     let hits = tdepth.iter().filter(|d| d.is_some()).count();
     assert!(hits > 200 && hits < rays.len(), "the sphere covers part of the view: {hits}");
     assert_eq!(fast, tdepth);
@@ -186,14 +195,19 @@ fn depth_march_with_block_skipping_equals_the_renderer() {
 /// `tensor_util::{select_rows, assign_rows}` work around by splitting.
 #[test]
 fn long_gathers_and_scatters_are_exact() {
-    use refnpr::tensor_util::{assign_rows, indices, select_rows};
+    use refnpr::util::tensor::{assign_rows, indices, select_rows};
     let d = common::device();
     for n in [1000usize, 70_000, 140_001] {
         let x = floats(vec![1.0; 30], [10, 3], &d).autodiff().require_grad();
         let idx: Vec<i32> = (0..n).map(|i| (i % 10) as i32).collect();
         let g = to_vec(x.grad(&select_rows(x.clone(), indices(idx.clone(), &d)).sum().backward()).unwrap());
         assert_eq!(g.iter().sum::<f32>(), (3 * n) as f32, "gather backward over {n} rows");
-        let t = assign_rows(Tensor::<2>::zeros([10, 3], &d), indices(idx, &d), Tensor::ones([n, 3], &d), burn::tensor::IndexingUpdateOp::Add);
+        let t = assign_rows(
+            Tensor::<2>::zeros([10, 3], &d),
+            indices(idx, &d),
+            Tensor::ones([n, 3], &d),
+            burn::tensor::IndexingUpdateOp::Add,
+        );
         assert_eq!(to_vec(t).iter().sum::<f32>(), (3 * n) as f32, "scatter-add of {n} rows");
     }
 }

@@ -10,17 +10,20 @@ use common::TempDir;
 use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use refnpr::camera::{Camera, Intrinsics, look_at};
-use refnpr::checkpoint;
-use refnpr::config::TrainConfig;
-use refnpr::data::{self, DatasetKind, procedural};
-use refnpr::grid::{GridGeometry, RadianceGrid};
-use refnpr::render::{self, BatchTensors, MarchParams, Marcher};
+use refnpr::field::checkpoint;
+use refnpr::field::composite::{self as render, BatchTensors};
+use refnpr::field::frozen::{FrozenSamples, render_colour, render_plain};
+use refnpr::field::grid::{GridGeometry, RadianceGrid};
+use refnpr::field::march::{self, MarchParams, Marcher};
+use refnpr::photo::config::TrainConfig;
+use refnpr::scene::camera::{Camera, Intrinsics, look_at};
+use refnpr::scene::data::{self, DatasetKind, procedural};
 use refnpr::stylize::config::StylizeConfig;
-use refnpr::stylize::frozen::{FrozenSamples, render_colour, render_plain};
+use refnpr::stylize::field::{StyleField, chunked_gradient};
+use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::tcm::Template;
-use refnpr::stylize::{Method, StyleField, StylizeJob, chunked_gradient, losses, run_stylize};
-use refnpr::tensor_util::{floats, to_vec};
+use refnpr::stylize::{Method, StylizeJob, losses};
+use refnpr::util::tensor::{floats, to_vec};
 use refnpr::vgg::{Vgg16, VggLayer, image_tensor};
 
 fn value(t: Tensor<1>) -> f32 {
@@ -83,7 +86,7 @@ fn frozen_render_matches_hand_compositing() {
         final_transmittance: vec![0.3],
     };
     // Row 0 colour = C0 * c + 0.5: c = 0 -> 0.5 grey; row 1: c = 1/C0 -> 1.5 (no upper clamp), c = -2/C0 -> 0 (ReLU).
-    let c0 = refnpr::stylize::frozen::SH_C0;
+    let c0 = refnpr::scene::sh::C0;
     let sh = floats(vec![0.0, 0.0, 0.0, 1.0 / c0, -2.0 / c0, 0.0], [2, 3], &d);
     let rgb = to_vec(render_colour(sh, &samples.upload(&d), [1.0, 0.0, 0.2]));
     let want = [0.4 * 0.5 + 0.3 * 1.5 + 0.3, 0.4 * 0.5, 0.4 * 0.5 + 0.3 * 0.5 + 0.3 * 0.2];
@@ -118,7 +121,11 @@ fn tcm_search_matches_brute_force() {
         let sims: Vec<f32> = keys.chunks(c).map(|kk| kk.iter().zip(&qi).map(|(a, b)| a * b).sum()).collect();
         let best = (0..nk).max_by(|&a, &b| sims[a].total_cmp(&sims[b])).unwrap();
         // Ties within float noise may pick either.
-        assert!(got[i] as usize == best || (sims[best] - sims[got[i] as usize]).abs() < 1e-5, "query {i}: {} vs {best}", got[i]);
+        assert!(
+            got[i] as usize == best || (sims[best] - sims[got[i] as usize]).abs() < 1e-5,
+            "query {i}: {} vs {best}",
+            got[i]
+        );
     }
     // The guidance is the style value at the matched index.
     let idx = Tensor::<1, Int>::from_data(TensorData::new(vec![3i32, 0], [2]), &d);
@@ -154,7 +161,12 @@ fn sh_tv_gradient_matches_finite_differences() {
     let n = grid.num_rows();
     let field = StyleField::new(grid);
     let (weight, fraction, seed) = (0.5f32, 0.3f32, 11u64);
-    let grad = to_vec(field.add_tv_gradient(Tensor::zeros([n, 3], &field.grid.device()), weight, fraction, &mut ChaCha8Rng::seed_from_u64(seed)));
+    let grad = to_vec(field.add_tv_gradient(
+        Tensor::zeros([n, 3], &field.grid.device()),
+        weight,
+        fraction,
+        &mut ChaCha8Rng::seed_from_u64(seed),
+    ));
     // The same picks (every lattice point is a row here, row = flat index).
     let count = (n as f32 * fraction).ceil() as usize;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -168,7 +180,10 @@ fn sh_tv_gradient_matches_finite_differences() {
         let sum: f64 = picks
             .iter()
             .map(|&r| {
-                let sq: f64 = (0..3).flat_map(|a| (0..3).map(move |c| (a, c))).map(|(a, c)| (sh[neighbour(r, a) * 3 + c] as f64 - sh[r * 3 + c] as f64).powi(2)).sum();
+                let sq: f64 = (0..3)
+                    .flat_map(|a| (0..3).map(move |c| (a, c)))
+                    .map(|(a, c)| (sh[neighbour(r, a) * 3 + c] as f64 - sh[r * 3 + c] as f64).powi(2))
+                    .sum();
                 (sq + 1e-9).sqrt()
             })
             .sum();
@@ -178,18 +193,19 @@ fn sh_tv_gradient_matches_finite_differences() {
     for &r in picks.iter().take(40) {
         for c in 0..3 {
             let i = r * 3 + c;
-            let h = 1e-3f32;
-            let (mut up, mut down) = (sh0.clone(), sh0.clone());
-            up[i] += h;
-            down[i] -= h;
-            let fd = ((tv(&up) - tv(&down)) / (2.0 * h as f64)) as f32;
-            assert!((fd - grad[i]).abs() < 2e-3 * fd.abs().max(1e-3) + 2e-4, "row {r} channel {c}: finite differences {fd}, gradient {}", grad[i]);
+            let fd = common::central_difference(&sh0, i, 1e-3, &tv) as f32;
+            assert!(
+                (fd - grad[i]).abs() < 2e-3 * fd.abs().max(1e-3) + 2e-4,
+                "row {r} channel {c}: finite differences {fd}, gradient {}",
+                grad[i]
+            );
             checked += 1;
         }
     }
     assert!(checked >= 100);
     // Rows far from every pick get nothing.
-    let touched: std::collections::HashSet<usize> = picks.iter().flat_map(|&r| [r, neighbour(r, 0), neighbour(r, 1), neighbour(r, 2)]).collect();
+    let touched: std::collections::HashSet<usize> =
+        picks.iter().flat_map(|&r| [r, neighbour(r, 0), neighbour(r, 1), neighbour(r, 2)]).collect();
     assert!((0..n).filter(|r| !touched.contains(r)).all(|r| (0..3).all(|c| grad[r * 3 + c] == 0.0)));
 }
 
@@ -236,8 +252,9 @@ fn deferred_backprop_equals_direct_backprop() {
     assert!(samples.num_samples() > 1000, "the camera sees the blob");
     // Frozen vs general renderer.
     let frozen = render_plain(&grid.sh, &samples, bg, 4096);
-    let batch = render::generate_samples(&grid, &rays, &march);
-    let general = to_vec(render::composite(grid.density.clone(), grid.sh.clone(), &BatchTensors::new(&batch, None, &d), bg).rgb);
+    let batch = march::generate_samples(&grid, &rays, &march);
+    let general =
+        to_vec(render::composite(grid.density.clone(), grid.sh.clone(), &BatchTensors::new(&batch, None, &d), bg).rgb);
     let worst = frozen.iter().zip(&general).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
     assert!(worst < common::tol(1e-5), "frozen vs general renderer: {worst}");
 
@@ -249,15 +266,19 @@ fn deferred_backprop_equals_direct_backprop() {
     let guidance = floats(probe, [100, 256], &d);
     let loss_of = |image: Tensor<4>| {
         let maps = vgg.features(image.clone(), &[VggLayer::Relu3_1]).unwrap();
-        let f = refnpr::features::block_matrix(&maps, &[VggLayer::Relu3_1], 0, [10, 10]);
-        losses::cosine_distance(f, guidance.clone()) + losses::image_tv(image.clone()) + losses::patch_means(image, 8).powf_scalar(2.0).mean()
+        let f = refnpr::vgg::features::block_matrix(&maps, &[VggLayer::Relu3_1], 0, [10, 10]);
+        losses::cosine_distance(f, guidance.clone())
+            + losses::image_tv(image.clone())
+            + losses::patch_means(image, 8).powf_scalar(2.0).mean()
     };
     let (w, h) = (40usize, 40usize);
     // Deferred, in chunks of 173 rays.
     let image = image_tensor(&frozen, w, h, &ad).require_grad();
     let grads = loss_of(image.clone()).backward();
     let g = image.grad(&grads).unwrap().reshape([3, w * h]).transpose();
-    let deferred = to_vec(chunked_gradient(&grid.sh, &samples, bg, 173, &|rgb, start, len| (rgb * g.clone().narrow(0, start, len)).sum()));
+    let deferred = to_vec(chunked_gradient(&grid.sh, &samples, bg, 173, &|rgb, start, len| {
+        (rgb * g.clone().narrow(0, start, len)).sum()
+    }));
     // Direct: one graph from the grid to the loss.
     let leaf = grid.sh.clone().autodiff().require_grad();
     let rgb = render_colour(leaf.clone(), &samples.upload(&d), bg);
@@ -285,7 +306,7 @@ fn tiny_photo_run(dir: &std::path::Path, steps: usize, num_train: usize) -> std:
     c.optim.lr_delay_steps = 20;
     c.checkpoint_every = steps;
     let run = dir.join("photo");
-    refnpr::train::run_training(&ds, c, &run, common::backend(), false).unwrap();
+    refnpr::photo::run::run_training(&ds, c, &run, common::backend(), false, &refnpr::Quiet).unwrap();
     run
 }
 
@@ -294,7 +315,11 @@ fn write_case(dir: &std::path::Path, scene: &std::path::Path, view: usize, extra
     let case = dir.join("case");
     std::fs::create_dir_all(&case).unwrap();
     std::fs::copy(scene.join(format!("stylized/train/r_{view}.png")), case.join("style.png")).unwrap();
-    std::fs::write(case.join("reference.toml"), format!("{extra}[[reference]]\nstyle = \"style.png\"\nview = \"train:{view}\"\n")).unwrap();
+    std::fs::write(
+        case.join("reference.toml"),
+        format!("{extra}[[reference]]\nstyle = \"style.png\"\nview = \"train:{view}\"\n"),
+    )
+    .unwrap();
     case
 }
 
@@ -307,7 +332,13 @@ fn quick_config(epochs: usize) -> StylizeConfig {
     c
 }
 
-fn job(photo: &std::path::Path, case: &std::path::Path, out: &std::path::Path, config: StylizeConfig, method: Method) -> StylizeJob {
+fn job(
+    photo: &std::path::Path,
+    case: &std::path::Path,
+    out: &std::path::Path,
+    config: StylizeConfig,
+    method: Method,
+) -> StylizeJob {
     StylizeJob {
         photo: photo.to_path_buf(),
         case: case.to_path_buf(),
@@ -317,6 +348,7 @@ fn job(photo: &std::path::Path, case: &std::path::Path, out: &std::path::Path, c
         backend: common::backend(),
         style: None,
         data: None,
+        registration: None,
         render_test: true,
     }
 }
@@ -329,7 +361,7 @@ fn test_psnr(run: &std::path::Path, truth: &data::Dataset) -> f32 {
     let mut sum = 0.0;
     for v in &truth.test {
         let r = render::render_view(&ck.grid, &v.camera, None, &cfg.march, ck.meta.background, 8192);
-        sum += refnpr::metrics::psnr(&r.rgb, &v.rgb);
+        sum += refnpr::eval::metrics::psnr(&r.image.rgb, &v.rgb);
     }
     sum / truth.test.len() as f32
 }
@@ -346,11 +378,14 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
     let scene = t.path().join("scene");
     let case = write_case(t.path(), &scene, 0, "");
     let out = t.path().join("style");
-    let report = run_stylize(&job(&photo, &case, &out, quick_config(4), Method::RefNpr)).unwrap();
+    let report = run_stylize(&job(&photo, &case, &out, quick_config(4), Method::RefNpr), &refnpr::Quiet).unwrap();
     assert!(report.colour_transfer.is_none(), "the photos are recoloured for ARF only");
     let twin = data::load(&scene.join("stylized"), &Default::default()).unwrap();
     let (before, after) = (test_psnr(&photo, &twin), test_psnr(&out, &twin));
-    eprintln!("PSNR to the stylized twin: photoreal {before:.2} dB, stylized {after:.2} dB; {:.1} s", report.total_seconds);
+    eprintln!(
+        "PSNR to the stylized twin: photoreal {before:.2} dB, stylized {after:.2} dB; {:.1} s",
+        report.total_seconds
+    );
     assert!(after >= before + 1.0, "stylized {after:.2} dB vs photoreal {before:.2} dB");
 
     let d = common::device();
@@ -362,12 +397,73 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
     for f in ["stylize.json", "reference_0.png", "test/path.gif", "test/rgb/0000.png"] {
         assert!(out.join(f).exists(), "{f} missing");
     }
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("stylize.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("stylize.json")).unwrap()).unwrap();
     let curve = json["curve"].as_array().unwrap();
     assert!(curve.iter().any(|p| p["phase"] == "smooth") && curve.iter().any(|p| p["phase"] == "image"));
     for k in ["registration", "refit", "content", "image_epochs", "smooth_update"] {
         assert!(json["seconds"][k].as_f64().is_some(), "seconds.{k}");
     }
+}
+
+/// `refnpr stylize --registration DIR` reads what `refnpr register` wrote
+/// and gives the very field that registering again gives; a file made for
+/// another reference view is refused with the file named.
+#[test]
+fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
+    use refnpr::reference::case::ReferenceCase;
+    use refnpr::reference::registration::run_register;
+    let t = TempDir::new("stylize-registration");
+    let photo = tiny_photo_run(t.path(), 60, 6);
+    let scene = t.path().join("scene");
+    let case = write_case(t.path(), &scene, 0, "");
+    let (ck, ds) = checkpoint::load_run(&photo, None, &common::device()).unwrap();
+    let r3 = t.path().join("r3");
+    let registered =
+        run_register(&ck, &ds, &ReferenceCase::load(&case).unwrap(), &Default::default(), &r3, 0, &refnpr::Quiet)
+            .unwrap();
+    assert!(registered.registered_pixels > 0);
+
+    let mut config = quick_config(1);
+    config.schedule.ray_epochs = 0.5;
+    let again = run_stylize(
+        &StylizeJob {
+            render_test: false,
+            ..job(&photo, &case, &t.path().join("again"), config.clone(), Method::RefNpr)
+        },
+        &refnpr::Quiet,
+    )
+    .unwrap();
+    let from_file = StylizeJob {
+        registration: Some(r3.clone()),
+        render_test: false,
+        ..job(&photo, &case, &t.path().join("file"), config.clone(), Method::RefNpr)
+    };
+    let loaded = run_stylize(&from_file, &refnpr::Quiet).unwrap();
+    assert_eq!(again.registered_pixels, registered.registered_pixels);
+    assert_eq!(loaded.registered_pixels, registered.registered_pixels);
+    assert_eq!(loaded.registered_fraction, again.registered_fraction);
+    let d = common::device();
+    let (a, b) = (
+        checkpoint::load_with(&t.path().join("again"), &d, false).unwrap(),
+        checkpoint::load_with(&t.path().join("file"), &d, false).unwrap(),
+    );
+    assert_eq!(to_vec(a.grid.sh.clone()), to_vec(b.grid.sh.clone()), "the stylized colours differ");
+
+    // The same file with a case painted from another view.
+    let other = t.path().join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    let case1 = write_case(&other, &scene, 1, "");
+    let err = run_stylize(
+        &StylizeJob {
+            registration: Some(r3.clone()),
+            render_test: false,
+            ..job(&photo, &case1, &t.path().join("bad"), config, Method::RefNpr)
+        },
+        &refnpr::Quiet,
+    )
+    .unwrap_err();
+    assert!(format!("{err:#}").contains("registration.bin"), "{err:#}");
 }
 
 /// Bad input: a case for another scene, a style image of another shape, a
@@ -381,18 +477,18 @@ fn bad_input_is_refused_with_the_file_named() {
     let out = t.path().join("style");
 
     let case = write_case(t.path(), &scene, 0, "scene_name = \"fern\"\n");
-    let err = run_stylize(&job(&photo, &case, &out, quick_config(1), Method::RefNpr)).unwrap_err();
+    let err = run_stylize(&job(&photo, &case, &out, quick_config(1), Method::RefNpr), &refnpr::Quiet).unwrap_err();
     assert!(format!("{err:#}").contains("fern"), "{err:#}");
 
     let case = write_case(t.path(), &scene, 0, "");
     image::RgbImage::new(64, 32).save(case.join("style.png")).unwrap();
-    let err = run_stylize(&job(&photo, &case, &out, quick_config(1), Method::RefNpr)).unwrap_err();
+    let err = run_stylize(&job(&photo, &case, &out, quick_config(1), Method::RefNpr), &refnpr::Quiet).unwrap_err();
     assert!(format!("{err:#}").contains("aspect ratio") && format!("{err:#}").contains("style.png"), "{err:#}");
 
     let bogus = t.path().join("bogus");
     std::fs::create_dir_all(&bogus).unwrap();
     std::fs::write(bogus.join("checkpoint.bin"), b"not a checkpoint at all").unwrap();
-    let err = run_stylize(&job(&bogus, &case, &out, quick_config(1), Method::RefNpr)).unwrap_err();
+    let err = run_stylize(&job(&bogus, &case, &out, quick_config(1), Method::RefNpr), &refnpr::Quiet).unwrap_err();
     assert!(format!("{err:#}").contains("checkpoint.bin"), "{err:#}");
 
     let err = StylizeConfig::from_toml_str("[loss]\nfeature_weight = 2.0\n", "my.toml").unwrap_err();
@@ -400,7 +496,9 @@ fn bad_input_is_refused_with_the_file_named() {
     let err = StylizeConfig::from_toml_str("[schedule]\nsmooth_fraction = 2.0\n", "my.toml").unwrap_err();
     assert!(format!("{err:#}").contains("smooth_fraction"), "{err:#}");
 
-    let shipped = StylizeConfig::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/configs/stylize.toml"))).unwrap();
+    let shipped =
+        StylizeConfig::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/configs/stylize.toml")))
+            .unwrap();
     assert_eq!(shipped, StylizeConfig::default());
 }
 
@@ -417,16 +515,26 @@ fn arf_baseline_lowers_its_matching_loss() {
     cfg.schedule.ray_epochs = 0.5;
     let mut j = job(&photo, &case, &out, cfg, Method::Arf);
     j.render_test = false;
-    let report = run_stylize(&j).unwrap();
+    let report = run_stylize(&j, &refnpr::Quiet).unwrap();
     let tf = report.colour_transfer.expect("ARF recolours the photos by default");
-    assert!(tf.matrix.iter().flatten().chain(&tf.offset).all(|v| v.is_finite()) && tf != refnpr::colour_transfer::ColourTransfer::IDENTITY, "{tf:?}");
+    assert!(
+        tf.matrix.iter().flatten().chain(&tf.offset).all(|v| v.is_finite())
+            && tf != refnpr::stylize::colour_transfer::ColourTransfer::IDENTITY,
+        "{tf:?}"
+    );
     // Background pixels are not recoloured: rays that miss the scene render
     // the fixed background, so a recoloured target there would put a floor
     // under the refit's error. The refit ends well below that floor.
     let ds = data::load(&t.path().join("scene"), &Default::default()).unwrap();
-    let white: Vec<bool> = ds.train.iter().flat_map(|v| v.rgb.chunks_exact(3).map(|c| c.iter().all(|&x| x >= 0.99)).collect::<Vec<_>>()).collect();
+    let white: Vec<bool> = ds
+        .train
+        .iter()
+        .flat_map(|v| v.rgb.chunks_exact(3).map(|c| c.iter().all(|&x| x >= 0.99)).collect::<Vec<_>>())
+        .collect();
     let moved = tf.apply([1.0; 3]);
-    let floor = white.iter().filter(|w| **w).count() as f32 / white.len() as f32 * moved.iter().map(|m| (1.0 - m).powi(2)).sum::<f32>() / 3.0;
+    let floor = white.iter().filter(|w| **w).count() as f32 / white.len() as f32
+        * moved.iter().map(|m| (1.0 - m).powi(2)).sum::<f32>()
+        / 3.0;
     let refit_end = report.curve.iter().filter(|p| p.phase == "refit").map(|p| p.reference).collect::<Vec<_>>();
     let last = refit_end[refit_end.len().saturating_sub(5)..].iter().sum::<f32>() / 5.0;
     eprintln!("ARF refit: final MSE {last:.5}; recoloured background alone would cost {floor:.5} (white -> {moved:?})");
@@ -461,7 +569,12 @@ fn ablation_configs_each_change_one_switch() {
             a.smooth_update != d.smooth_update,
         ];
         assert_eq!(changed.iter().filter(|c| **c).count(), 1, "{}", path.display());
-        assert_eq!(StylizeConfig { ablation: defaults.ablation.clone(), ..c.clone() }, defaults, "{} changes more than an ablation switch", path.display());
+        assert_eq!(
+            StylizeConfig { ablation: defaults.ablation.clone(), ..c.clone() },
+            defaults,
+            "{} changes more than an ablation switch",
+            path.display()
+        );
         seen += 1;
     }
     assert_eq!(seen, 5);
@@ -473,7 +586,7 @@ fn ablation_configs_each_change_one_switch() {
 /// more closely than the photoreal field does.
 #[test]
 fn robustness_restylizes_with_the_runs_method() {
-    use refnpr::evaluation::{EvalJob, evaluate_stylization, render_surface};
+    use refnpr::eval::stylization::{EvalJob, evaluate_stylization, render_surface};
     let t = TempDir::new("stylize-robustness");
     let photo = tiny_photo_run(t.path(), 120, 6);
     let frames = 12;
@@ -483,10 +596,20 @@ fn robustness_restylizes_with_the_runs_method() {
         let out = t.path().join(format!("{method:?}"));
         let mut j = job(&photo, &case, &out, quick_config(2), method);
         j.render_test = false;
-        run_stylize(&j).unwrap();
-        let eval = EvalJob { run: out.clone(), case: case.clone(), gt: None, robustness: 1, backend: common::backend(), data: None, robustness_epochs: Some(2) };
-        let e = evaluate_stylization(&eval).unwrap();
-        let again: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("robustness/stylized_0/stylize.json")).unwrap()).unwrap();
+        run_stylize(&j, &refnpr::Quiet).unwrap();
+        let eval = EvalJob {
+            run: out.clone(),
+            case: case.clone(),
+            gt: None,
+            robustness: 1,
+            backend: common::backend(),
+            data: None,
+            robustness_epochs: Some(2),
+        };
+        let e = evaluate_stylization(&eval, &refnpr::Quiet).unwrap();
+        let again: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(out.join("robustness/stylized_0/stylize.json")).unwrap())
+                .unwrap();
         assert_eq!(again["method"], serde_json::to_value(method).unwrap(), "{method:?} restylized with another method");
         let robustness = e.robustness_psnr.expect("robustness asked for");
         // The photoreal field against the run's path renders: where a
@@ -495,11 +618,11 @@ fn robustness_restylizes_with_the_runs_method() {
         let photo_ck = checkpoint::load_with(&photo, &d, false).unwrap();
         let (mut sum, mut n) = (0.0f64, 0usize);
         for cam in dataset.render_path(frames) {
-            let (a, b) = (render_surface(&ck, &cam).unwrap(), render_surface(&photo_ck, &cam).unwrap());
-            sum += refnpr::metrics::squared_error(&a.rgb, &b.rgb);
-            n += a.rgb.len();
+            let (a, b) = (render_surface(&ck, &cam), render_surface(&photo_ck, &cam));
+            sum += refnpr::eval::metrics::squared_error(&a.image.rgb, &b.image.rgb);
+            n += a.image.rgb.len();
         }
-        let photoreal = refnpr::metrics::psnr_from_mse((sum / n as f64) as f32);
+        let photoreal = refnpr::eval::metrics::psnr_from_mse((sum / n as f64) as f32);
         eprintln!("{method:?}: robustness {robustness:.2} dB, photoreal field vs the run {photoreal:.2} dB");
         assert!(robustness.is_finite());
         if method == Method::RefNpr {

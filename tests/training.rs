@@ -4,11 +4,12 @@
 mod common;
 
 use common::TempDir;
-use refnpr::checkpoint;
-use refnpr::config::TrainConfig;
-use refnpr::data::{self, DatasetKind, procedural};
-use refnpr::tensor_util::to_vec;
-use refnpr::train::{self, Trainer};
+use refnpr::field::checkpoint;
+use refnpr::photo::config::TrainConfig;
+use refnpr::photo::run::run_training;
+use refnpr::photo::trainer::Trainer;
+use refnpr::scene::data::{self, DatasetKind, procedural};
+use refnpr::util::tensor::to_vec;
 
 fn tiny_scene(dir: &std::path::Path) -> data::Dataset {
     let opts = procedural::SceneOptions { seed: 1, size: 32, num_train: 24, num_val: 1, num_test: 3 };
@@ -36,13 +37,14 @@ fn training_a_tiny_scene_reaches_the_stated_psnr() {
     let t = TempDir::new("train");
     let ds = tiny_scene(&t.path().join("scene"));
     let out = t.path().join("run");
-    let m = train::run_training(&ds, tiny_config(300), &out, common::backend(), false).unwrap();
+    let m = run_training(&ds, tiny_config(300), &out, common::backend(), false, &refnpr::Quiet).unwrap();
     eprintln!("tiny scene: test PSNR {:.2} dB, SSIM {:.3}, {:.1} s", m.test_psnr, m.test_ssim, m.train_seconds);
     assert!(m.test_psnr >= 22.0, "test PSNR {:.2} dB", m.test_psnr);
     for f in ["metrics.json", "checkpoint.bin", "config.toml", "test/0000.png"] {
         assert!(out.join(f).exists(), "{f} missing");
     }
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
     for key in ["test_psnr", "test_ssim", "train_seconds", "steps"] {
         assert!(json.get(key).is_some(), "metrics.json lacks {key}");
     }
@@ -66,9 +68,9 @@ fn checkpoint_round_trip_preserves_the_grid_and_renders() {
     assert_eq!(to_vec(ck.grid.density.clone()), to_vec(tr.grid.density.clone()));
     assert_eq!(to_vec(ck.grid.sh.clone()), to_vec(tr.grid.sh.clone()));
     let cam = &ds.test[0].camera;
-    let a = refnpr::render::render_view(&tr.grid, cam, None, &tr.config.march, ds.background, 4096);
-    let b = refnpr::render::render_view(&ck.grid, cam, None, &ck.meta.config.march, ck.meta.background, 4096);
-    assert_eq!(a.rgb, b.rgb);
+    let a = refnpr::field::composite::render_view(&tr.grid, cam, None, &tr.config.march, ds.background, 4096);
+    let b = refnpr::field::composite::render_view(&ck.grid, cam, None, &ck.meta.config.march, ck.meta.background, 4096);
+    assert_eq!(a.image.rgb, b.image.rgb);
     // Corrupt and foreign files are refused with the path in the message.
     let bad = t.path().join("bad.bin");
     std::fs::write(&bad, b"REFNPRG1 truncated").unwrap();
@@ -112,7 +114,9 @@ fn a_resumed_run_ends_where_an_uninterrupted_one_does() {
 #[test]
 fn shipped_configs_parse_and_match_the_built_in_defaults() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs");
-    for (file, kind) in [("blender.toml", DatasetKind::Blender), ("llff.toml", DatasetKind::Llff), ("nsvf.toml", DatasetKind::Nsvf)] {
+    for (file, kind) in
+        [("blender.toml", DatasetKind::Blender), ("llff.toml", DatasetKind::Llff), ("nsvf.toml", DatasetKind::Nsvf)]
+    {
         let base = TrainConfig::for_kind(kind);
         let parsed = TrainConfig::from_file(&root.join(file), &TrainConfig::default()).unwrap();
         assert_eq!(parsed, base, "configs/{file} differs from TrainConfig::for_kind({kind})");

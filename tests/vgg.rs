@@ -5,14 +5,14 @@
 mod common;
 
 use burn::tensor::Tensor;
+use glam::Vec3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use glam::Vec3;
-use refnpr::camera::{Camera, Intrinsics, look_at};
-use refnpr::data::npy;
-use refnpr::data::procedural::{ID_BACKGROUND, Scene};
-use refnpr::features::{multi_block_descriptors, nearest_by_dot};
-use refnpr::tensor_util::{floats, to_vec};
+use refnpr::scene::camera::{Camera, Intrinsics, look_at};
+use refnpr::scene::data::procedural::{ID_BACKGROUND, Scene};
+use refnpr::util::npy;
+use refnpr::util::tensor::{floats, to_vec};
+use refnpr::vgg::features::{multi_block_descriptors, nearest_by_dot};
 use refnpr::vgg::{Vgg16, VggError, VggLayer, image_tensor};
 use std::path::PathBuf;
 use std::sync::OnceLock;
@@ -127,10 +127,7 @@ fn input_gradient_matches_finite_differences() {
     let pixels = [5usize, 100, 517, 1024 + 333, 2048 + 700, 3000];
     let mut fds = Vec::new();
     for &idx in &pixels {
-        let mut plus = base.clone();
-        plus[idx] += eps;
-        let mut minus = base.clone();
-        minus[idx] -= eps;
+        let (plus, minus) = common::perturbed(&base, idx, eps);
         // L(x+) - L(x-) as sum(probe * (f+ - f-)) over relu2_2's cells that can
         // see the pixel (exactly zero elsewhere in exact arithmetic): this keeps
         // the f32 rounding noise of the rest of the map (and of backends whose
@@ -194,7 +191,8 @@ fn semantic_match_fraction(vgg: &Vgg16) -> f32 {
         let (az, el) = (az_deg.to_radians(), 30f32.to_radians());
         let eye = target + 3.4 * Vec3::new(el.cos() * az.cos(), el.cos() * az.sin(), el.sin());
         let (rgba, _, ids) = scene.render(&Camera::new(intr, look_at(eye, target, Vec3::Z)), false);
-        let rgb: Vec<f32> = rgba.chunks_exact(4).flat_map(|p| (0..3).map(move |c| p[c] * p[3] + (1.0 - p[3]))).collect();
+        let rgb: Vec<f32> =
+            rgba.chunks_exact(4).flat_map(|p| (0..3).map(move |c| p[c] * p[3] + (1.0 - p[3]))).collect();
         (image_tensor(&rgb, size as usize, size as usize, &device), ids)
     };
     let (img_a, ids_a) = view(20.0);

@@ -1,12 +1,27 @@
-//! The `refnpr` command line: parse, call the library, print.
+//! The `refnpr` command line: parse the arguments, call the library, print
+//! the result. One small function per subcommand.
+
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, ensure};
-use clap::{Parser, Subcommand};
-use refnpr::config::TrainConfig;
-use refnpr::data::{self, procedural};
-use refnpr::render_path::{self, PathKind};
-use refnpr::{BackendKind, checkpoint, evaluation, train};
-use std::path::PathBuf;
+use clap::parser::ValueSource;
+use clap::{ArgMatches, CommandFactory, FromArgMatches, Parser, Subcommand};
+use refnpr::eval::photoreal::evaluate;
+use refnpr::eval::render_path::{self, PathKind};
+use refnpr::eval::stylization::{self, EvalJob};
+use refnpr::field::checkpoint::{self, Checkpoint};
+use refnpr::photo::config::TrainConfig;
+use refnpr::photo::run::run_training;
+use refnpr::reference::case::{ReferenceCase, ViewSpec};
+use refnpr::reference::r3::RegisterParams;
+use refnpr::reference::registration;
+use refnpr::scene::data::{self, Dataset, procedural};
+use refnpr::stylize::config::StylizeConfig;
+use refnpr::stylize::run::run_stylize;
+use refnpr::stylize::{Method, StylizeJob};
+use refnpr::tools::{bench, demo, paint};
+use refnpr::util::{config, files, image};
+use refnpr::{BackendKind, Console, Progress};
 
 #[derive(Parser)]
 #[command(name = "refnpr", version, about = "Reference-based non-photorealistic radiance fields (Ref-NPR) on Burn")]
@@ -21,7 +36,7 @@ enum Command {
     Demo {
         #[arg(long, default_value = "demo-out")]
         out: PathBuf,
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<BackendKind>,
         /// Override the number of photoreal training steps.
         #[arg(long)]
@@ -33,7 +48,7 @@ enum Command {
     /// Renderer throughput (rays/s, forward and forward+backward) per backend and resolution.
     Bench {
         /// Backends to measure (default: all three).
-        #[arg(long, value_delimiter = ',')]
+        #[arg(long, value_enum, value_delimiter = ',')]
         backends: Option<Vec<BackendKind>>,
         /// Grid resolutions.
         #[arg(long, value_delimiter = ',', default_value = "128,256")]
@@ -50,7 +65,7 @@ enum Command {
     /// onnxruntime's CPU forward on the same input as a yardstick.
     BenchVgg {
         /// Backends to measure (default: all three).
-        #[arg(long, value_delimiter = ',')]
+        #[arg(long, value_enum, value_delimiter = ',')]
         backends: Option<Vec<BackendKind>>,
         /// Image sizes, WIDTHxHEIGHT.
         #[arg(long, value_delimiter = ',', default_value = "256x256,504x378")]
@@ -94,27 +109,8 @@ enum Command {
         out: PathBuf,
         #[arg(long)]
         data: Option<PathBuf>,
-        /// Dictionary voxels along the longest side.
-        #[arg(long)]
-        dict_res: Option<usize>,
-        /// Reference points kept per voxel.
-        #[arg(long)]
-        per_voxel: Option<usize>,
-        /// Minimum cosine between reference and training ray directions.
-        #[arg(long)]
-        cos_threshold: Option<f32>,
-        /// Largest match distance, in dictionary voxels.
-        #[arg(long)]
-        max_dist_voxels: Option<f32>,
-        /// Erode the reference hit mask this many times.
-        #[arg(long)]
-        erode: Option<usize>,
-        /// Search only the point's own voxel (not its 26 neighbours).
-        #[arg(long)]
-        no_neighbours: bool,
-        /// Use exactly --dict-res, even when voxels get smaller than the reference's pixel footprint.
-        #[arg(long)]
-        no_footprint_cap: bool,
+        #[command(flatten)]
+        params: RegisterParams,
         /// Overlay PNGs for the first N training views.
         #[arg(long, default_value_t = 8)]
         overlays: usize,
@@ -133,16 +129,15 @@ enum Command {
         /// TOML config; fields it leaves out take the defaults of configs/stylize.toml.
         #[arg(long)]
         config: Option<PathBuf>,
-        /// refnpr | arf
-        #[arg(long, default_value = "refnpr")]
-        method: refnpr::stylize::Method,
+        #[arg(long, value_enum, default_value_t = Method::RefNpr)]
+        method: Method,
         /// ARF: a style image instead of the case's first reference.
         #[arg(long)]
         style: Option<PathBuf>,
         /// Override schedule.image_epochs.
         #[arg(long)]
         epochs: Option<usize>,
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<BackendKind>,
         /// Dataset folder (default: the one the photoreal run was trained on).
         #[arg(long)]
@@ -150,6 +145,12 @@ enum Command {
         /// Skip rendering the test views of the result.
         #[arg(long)]
         no_render: bool,
+        /// A `refnpr register` output folder (or its registration.bin) to use instead of registering again.
+        #[arg(long)]
+        registration: Option<PathBuf>,
+        /// R³ settings; a flag given here overrides the config file's [register].
+        #[command(flatten)]
+        register: RegisterParams,
     },
     /// Stylization metrics of a stylized run (with --reference), or PSNR / SSIM of a run's test views.
     Eval {
@@ -176,7 +177,7 @@ enum Command {
         /// The run's dataset folder, when it moved.
         #[arg(long)]
         data: Option<PathBuf>,
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<BackendKind>,
     },
     /// A quick painterly repaint of an image (e.g. a reference case's content.png) to try stylization without painting.
@@ -208,7 +209,7 @@ enum Command {
         #[arg(long)]
         config: Option<PathBuf>,
         /// flex | ndarray | wgpu (default: $REFNPR_BACKEND, else flex).
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<BackendKind>,
         /// Continue from OUT/checkpoint.bin if it exists.
         #[arg(long)]
@@ -222,8 +223,7 @@ enum Command {
         /// Run folder (or checkpoint file).
         #[arg(long)]
         ckpt: PathBuf,
-        /// test | train | spiral | orbit
-        #[arg(long, default_value = "test")]
+        #[arg(long, value_enum, default_value_t = PathKind::Test)]
         path: PathKind,
         #[arg(long)]
         out: PathBuf,
@@ -233,16 +233,9 @@ enum Command {
         /// Dataset folder (default: the one the run was trained on).
         #[arg(long)]
         data: Option<PathBuf>,
-        #[arg(long)]
+        #[arg(long, value_enum)]
         backend: Option<BackendKind>,
     },
-}
-
-fn backend_or_env(b: Option<BackendKind>) -> Result<BackendKind> {
-    match b {
-        Some(b) => Ok(b),
-        None => BackendKind::from_env(),
-    }
 }
 
 fn main() {
@@ -254,204 +247,334 @@ fn main() {
 }
 
 fn run() -> Result<()> {
-    match Cli::parse().command {
+    let matches = Cli::command().get_matches();
+    let cli = Cli::from_arg_matches(&matches)?;
+    let progress = Console::default();
+    match cli.command {
         Command::Demo { out, backend, steps, epochs } => {
-            let backend = backend_or_env(backend)?;
-            let r = refnpr::demo::run_demo(&out, backend, &refnpr::demo::DemoOptions { steps, epochs, ..Default::default() })?;
-            let e = &r.eval;
-            let fmt = |v: Option<f32>| v.map(|v| format!("{v:.2} dB")).unwrap_or_else(|| "-".into());
-            println!("demo done in {:.0} s (backend {backend})", r.seconds);
-            println!("  photoreal fit:   {:.2} dB test PSNR ({:.0} s)  orbit: {}", r.photo.test_psnr, r.photo.train_seconds, out.join("orbit/path.gif").display());
-            println!("  reference:       {}", out.join("case/style.png").display());
-            println!("  stylized:        {:.0} s  orbit: {}", r.stylize.total_seconds, out.join("stylized/orbit/path.gif").display());
-            println!(
-                "  vs ground truth: {} (photoreal field: {:.2} dB), on surfaces the reference does not see: {} ({:.0}% of the surface)",
-                fmt(e.gt_psnr),
-                r.photo_gt_psnr,
-                fmt(e.gt_psnr_occluded),
-                100.0 * e.occluded_fraction.unwrap_or(0.0)
-            );
-            let st: Vec<String> = e.stability.iter().map(|s| format!("{} frame(s) apart {:.4}", s.gap, s.rmse)).collect();
-            println!("  ref_lpips {:.4}; stability (warp RMSE) {}", e.ref_lpips, st.join(", "));
-            println!("  all figures: {}", out.join("eval.json").display());
+            run_demo(&out, backend_or_env(backend)?, steps, epochs, &progress)
         }
-        Command::Bench { backends, res, rays, repeats, json } => {
-            let mut results = Vec::new();
-            println!("{:<8} {:>5} {:>9} {:>12} {:>14} {:>18}", "backend", "res", "voxels", "samples/ray", "fwd rays/s", "fwd+bwd rays/s");
-            for b in backends.unwrap_or(BackendKind::ALL.to_vec()) {
-                for &r in &res {
-                    let m = refnpr::bench::renderer_throughput(b, r, rays, repeats)?;
-                    println!(
-                        "{:<8} {:>5} {:>9} {:>12.1} {:>14.0} {:>18.0}",
-                        m.backend, m.res, m.active_voxels, m.samples_per_ray, m.forward_rays_per_s, m.forward_backward_rays_per_s
-                    );
-                    results.push(m);
-                }
-            }
-            if let Some(p) = json {
-                std::fs::write(&p, serde_json::to_string_pretty(&results)?)
-                    .with_context(|| format!("cannot write {}", p.display()))?;
-            }
-        }
+        Command::Bench { backends, res, rays, repeats, json } => run_bench(backends, &res, rays, repeats, json),
         Command::BenchVgg { backends, sizes, warmup, repeats, no_onnxruntime, json } => {
-            let mut sizes_wh = Vec::new();
-            for s in &sizes {
-                let parsed = s.split_once('x').and_then(|(w, h)| Some((w.parse::<usize>().ok()?, h.parse::<usize>().ok()?)));
-                sizes_wh.push(parsed.with_context(|| format!("--sizes: {s:?} is not WIDTHxHEIGHT"))?);
-            }
-            let mut ort = Vec::new();
-            for &(w, h) in &sizes_wh {
-                let ms = if no_onnxruntime { None } else {
-                    match refnpr::bench::onnxruntime_forward_ms(w, h, repeats) {
-                        Ok(ms) => Some(ms),
-                        Err(e) => {
-                            eprintln!("onnxruntime yardstick unavailable: {e:#}");
-                            None
-                        }
-                    }
-                };
-                if let Some(ms) = ms {
-                    println!("onnxruntime (CPU) {w}x{h}: forward {ms:.0} ms");
-                }
-                ort.push(ms);
-            }
-            println!(
-                "{:<8} {:>9} {:>10} {:>14} {:>12} {:>18}",
-                "backend", "size", "fwd ms", "fwd+bwd ms", "fwd+bwd MB", "fwd+bwd / ort fwd"
-            );
-            let mut results = Vec::new();
-            for b in backends.unwrap_or(BackendKind::ALL.to_vec()) {
-                for (&(w, h), ort_ms) in sizes_wh.iter().zip(&ort) {
-                    let m = refnpr::bench::vgg_timing(b, w, h, warmup, repeats)?;
-                    let ratio = ort_ms.map(|o| format!("{:.2}", m.forward_backward_ms / o)).unwrap_or("-".into());
-                    let mem = m.forward_backward_peak_mb.map(|v| format!("{v:.0}")).unwrap_or("-".into());
-                    println!(
-                        "{:<8} {:>9} {:>10.0} {:>14.0} {:>12} {:>18}",
-                        m.backend, format!("{w}x{h}"), m.forward_ms, m.forward_backward_ms, mem, ratio
-                    );
-                    results.push(serde_json::json!({ "result": m, "onnxruntime_forward_ms": ort_ms }));
-                }
-            }
-            if let Some(p) = json {
-                std::fs::write(&p, serde_json::to_string_pretty(&results)?)
-                    .with_context(|| format!("cannot write {}", p.display()))?;
-            }
+            run_bench_vgg(backends, &sizes, warmup, repeats, no_onnxruntime, json)
         }
-        Command::Reference { ckpt, view, out, data: data_dir } => {
-            let (ck, dataset) = load_run(&ckpt, data_dir)?;
-            let spec: refnpr::reference::ViewSpec = view.parse()?;
-            let content = refnpr::registration::write_reference_skeleton(&ck, &dataset, &spec, &out)?;
-            println!("wrote {} (and depth.png, depth.npy, reference.toml)", content.display());
-            println!("paint over it and save the result as {}", out.join("style.png").display());
-        }
-        Command::Register {
-            photo, reference, out, data: data_dir, dict_res, per_voxel, cos_threshold, max_dist_voxels, erode, no_neighbours, no_footprint_cap, overlays,
-        } => {
-            let (ck, dataset) = load_run(&photo, data_dir)?;
-            let case = refnpr::reference::ReferenceCase::load(&reference)?;
-            let mut params = refnpr::register::RegisterParams::default();
-            if let Some(v) = dict_res { params.dict_res = v; }
-            if let Some(v) = per_voxel { params.per_voxel = v; }
-            if let Some(v) = cos_threshold { params.cos_threshold = v; }
-            if let Some(v) = max_dist_voxels { params.max_dist_voxels = v; }
-            if let Some(v) = erode { params.erode_reference = v; }
-            params.neighbours = !no_neighbours;
-            params.cap_to_footprint = !no_footprint_cap;
-            let r = refnpr::registration::run_register(&ck, &dataset, &case, &params, &out, overlays)?;
+        Command::Reference { ckpt, view, out, data } => run_reference(&ckpt, &view, &out, data),
+        Command::Register { photo, reference, out, data, params, overlays } => {
+            let (ck, dataset) = load_run(&photo, data)?;
+            let case = ReferenceCase::load(&reference)?;
+            let r = registration::run_register(&ck, &dataset, &case, &params, &out, overlays, &progress)?;
             println!(
                 "registered {} pixels ({:.1}% of surface pixels) over {} views; depth {:.2}s, dictionary {:.3}s, registration {:.3}s",
-                r.registered_pixels, 100.0 * r.fraction_overall, r.fraction_per_view.len(), r.depth_seconds, r.dictionary_seconds, r.register_seconds
+                r.registered_pixels,
+                100.0 * r.fraction_overall,
+                r.fraction_per_view.len(),
+                r.depth_seconds,
+                r.dictionary_seconds,
+                r.register_seconds
             );
             println!("wrote {}/registration.bin, register.json, overlays/", out.display());
+            Ok(())
         }
-        Command::Stylize { photo, reference, out, config, method, style, epochs, backend, data: data_dir, no_render } => {
-            let mut config = match &config {
-                Some(p) => refnpr::stylize::config::StylizeConfig::from_file(p)?,
-                None => Default::default(),
-            };
-            if let Some(e) = epochs {
-                config.schedule.image_epochs = e;
-            }
-            let job = refnpr::stylize::StylizeJob {
-                photo, case: reference, out: out.clone(), config, method, backend: backend_or_env(backend)?, style, data: data_dir, render_test: !no_render,
-            };
-            let r = refnpr::stylize::run_stylize(&job)?;
-            let phases: Vec<String> = r.seconds.iter().map(|(k, v)| format!("{k} {v:.1}s")).collect();
-            println!("stylized ({}) in {:.1} s: {}", r.method, r.total_seconds, phases.join(", "));
-            println!("wrote {}/checkpoint.bin, stylize.json{}", out.display(), if job.render_test { ", test/" } else { "" });
+        Command::Stylize { .. } => {
+            let stylize = matches.subcommand_matches("stylize").expect("the stylize subcommand was parsed");
+            run_stylize_command(cli.command, stylize, &progress)
         }
-        Command::Eval { run, reference, gt, robustness, robustness_epochs, out, data: data_dir, backend } => {
+        Command::Eval { run, reference, gt, robustness, robustness_epochs, out, data, backend } => {
             let backend = backend_or_env(backend)?;
             let json = match reference {
                 Some(case) => {
-                    let job = evaluation::EvalJob { run, case, gt, robustness, backend, data: data_dir, robustness_epochs };
-                    serde_json::to_value(evaluation::evaluate_stylization(&job)?)?
+                    let job = EvalJob { run, case, gt, robustness, backend, data, robustness_epochs };
+                    serde_json::to_value(stylization::evaluate_stylization(&job, &progress)?)?
                 }
                 None => {
                     ensure!(robustness == 0, "--robustness needs --reference (the stylized run's case)");
-                    let truth = gt.or(data_dir);
-                    let (ck, dataset) = checkpoint::load_run(&run, truth.as_deref(), &backend.device())?;
-                    let r = train::evaluate(&ck.grid, &dataset, &dataset.test, &ck.meta.config, None)?;
-                    serde_json::json!({"psnr": r.psnr, "ssim": r.ssim, "views": r.per_view_psnr.len(), "data": dataset.root})
+                    photoreal_eval(&run, gt.or(data), backend)?
                 }
             };
             if let Some(path) = out {
-                evaluation::write_json(&path, &json)?;
+                files::write_json(&path, &json)?;
             }
             println!("{}", serde_json::to_string_pretty(&json)?);
+            Ok(())
         }
         Command::Paint { input, out, seed } => {
-            let img = image::open(&input).with_context(|| format!("cannot read image {}", input.display()))?.to_rgba32f();
+            let img =
+                ::image::open(&input).with_context(|| format!("cannot read image {}", input.display()))?.to_rgba32f();
             let (w, h) = (img.width(), img.height());
             let rgb = data::composite_over(&img, [1.0; 3]);
-            let painted = refnpr::paint::painterly(&rgb, w as usize, h as usize, seed);
-            refnpr::imageio::save_png(&out, w, h, &painted)?;
+            image::save_png(&out, w, h, &paint::painterly(&rgb, w as usize, h as usize, seed))?;
             println!("wrote {}", out.display());
+            Ok(())
         }
         Command::Scene { out, seed, size } => {
-            let opts = procedural::SceneOptions { seed, size, ..Default::default() };
-            procedural::write_scene(&out, &opts)?;
+            procedural::write_scene(&out, &procedural::SceneOptions { seed, size, ..Default::default() })?;
             println!("wrote the procedural scene to {}", out.display());
+            Ok(())
         }
-        Command::Train { data: dir, out, config, backend, resume, steps } => {
-            let backend = backend_or_env(backend)?;
-            let kind = data::detect_kind(&dir)?;
-            let base = TrainConfig::for_kind(kind);
-            let mut cfg = match &config {
-                Some(p) => TrainConfig::from_file(p, &base)?,
-                None => base,
-            };
-            if let Some(s) = steps {
-                cfg.optim.steps = s;
-                cfg.validate()?;
-            }
-            let dataset = data::load(&dir, &cfg.data)?;
-            eprintln!(
-                "{} scene {}: {} train / {} test views at {}x{}, backend {backend}",
-                kind, dir.display(), dataset.train.len(), dataset.test.len(),
-                dataset.train[0].camera.intrinsics.width, dataset.train[0].camera.intrinsics.height
-            );
-            let m = train::run_training(&dataset, cfg, &out, backend, resume)?;
-            println!(
-                "test PSNR {:.2} dB, SSIM {:.4}, {} steps in {:.1} s; wrote {}",
-                m.test_psnr, m.test_ssim, m.steps, m.train_seconds, out.join("metrics.json").display()
-            );
+        Command::Train { data, out, config, backend, resume, steps } => {
+            run_train(&data, &out, config.as_deref(), backend_or_env(backend)?, resume, steps, &progress)
         }
-        Command::Render { ckpt, path, out, frames, data: data_dir, backend } => {
-            let backend = backend_or_env(backend)?;
-            let (ck, dataset) = checkpoint::load_run(&ckpt, data_dir.as_deref(), &backend.device())?;
+        Command::Render { ckpt, path, out, frames, data, backend } => {
+            let (ck, dataset) = checkpoint::load_run(&ckpt, data.as_deref(), &backend_or_env(backend)?.device())?;
             let cams = render_path::path_cameras(&dataset, path, frames)?;
-            render_path::render_frames(&ck, &cams, &out, true)?;
+            render_path::render_frames(&ck, &cams, &out, &progress)?;
             println!("rendered {} frames to {}", cams.len(), out.display());
+            Ok(())
         }
+    }
+}
+
+fn backend_or_env(b: Option<BackendKind>) -> Result<BackendKind> {
+    match b {
+        Some(b) => Ok(b),
+        None => BackendKind::from_env(),
+    }
+}
+
+/// A photoreal run and its dataset on the default backend (R³ needs no autodiff).
+fn load_run(ckpt: &Path, data_dir: Option<PathBuf>) -> Result<(Checkpoint, Dataset)> {
+    checkpoint::load_run(ckpt, data_dir.as_deref(), &backend_or_env(None)?.device())
+}
+
+fn run_demo(
+    out: &Path,
+    backend: BackendKind,
+    steps: Option<usize>,
+    epochs: Option<usize>,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let r = demo::run_demo(out, backend, &demo::DemoOptions { steps, epochs, ..Default::default() }, progress)?;
+    let e = &r.eval;
+    let fmt = |v: Option<f32>| v.map(|v| format!("{v:.2} dB")).unwrap_or_else(|| "-".into());
+    println!("demo done in {:.0} s (backend {backend})", r.seconds);
+    println!(
+        "  photoreal fit:   {:.2} dB test PSNR ({:.0} s)  orbit: {}",
+        r.photo.test_psnr,
+        r.photo.train_seconds,
+        out.join("orbit/path.gif").display()
+    );
+    println!("  reference:       {}", out.join("case/style.png").display());
+    println!(
+        "  stylized:        {:.0} s  orbit: {}",
+        r.stylize.total_seconds,
+        out.join("stylized/orbit/path.gif").display()
+    );
+    println!(
+        "  vs ground truth: {} (photoreal field: {:.2} dB), on surfaces the reference does not see: {} ({:.0}% of the surface)",
+        fmt(e.gt_psnr),
+        r.photo_gt_psnr,
+        fmt(e.gt_psnr_occluded),
+        100.0 * e.occluded_fraction.unwrap_or(0.0)
+    );
+    let st: Vec<String> = e.stability.iter().map(|s| format!("{} frame(s) apart {:.4}", s.gap, s.rmse)).collect();
+    println!("  ref_lpips {:.4}; stability (warp RMSE) {}", e.ref_lpips, st.join(", "));
+    println!("  all figures: {}", out.join("eval.json").display());
+    Ok(())
+}
+
+fn run_bench(
+    backends: Option<Vec<BackendKind>>,
+    res: &[usize],
+    rays: usize,
+    repeats: usize,
+    json: Option<PathBuf>,
+) -> Result<()> {
+    let mut results = Vec::new();
+    println!(
+        "{:<8} {:>5} {:>9} {:>12} {:>14} {:>18}",
+        "backend", "res", "voxels", "samples/ray", "fwd rays/s", "fwd+bwd rays/s"
+    );
+    for b in backends.unwrap_or(BackendKind::ALL.to_vec()) {
+        for &r in res {
+            let m = bench::renderer_throughput(b, r, rays, repeats)?;
+            println!(
+                "{:<8} {:>5} {:>9} {:>12.1} {:>14.0} {:>18.0}",
+                m.backend,
+                m.res,
+                m.active_voxels,
+                m.samples_per_ray,
+                m.forward_rays_per_s,
+                m.forward_backward_rays_per_s
+            );
+            results.push(m);
+        }
+    }
+    if let Some(p) = json {
+        files::write_json(&p, &results)?;
     }
     Ok(())
 }
 
-/// A photoreal run and its dataset on the default backend (R³ needs no autodiff).
-fn load_run(ckpt: &std::path::Path, data_dir: Option<PathBuf>) -> Result<(checkpoint::Checkpoint, data::Dataset)> {
-    let backend = backend_or_env(None)?;
-    checkpoint::load_run(ckpt, data_dir.as_deref(), &backend.device())
+fn run_bench_vgg(
+    backends: Option<Vec<BackendKind>>,
+    sizes: &[String],
+    warmup: usize,
+    repeats: usize,
+    no_onnxruntime: bool,
+    json: Option<PathBuf>,
+) -> Result<()> {
+    let mut sizes_wh = Vec::new();
+    for s in sizes {
+        let parsed = s.split_once('x').and_then(|(w, h)| Some((w.parse::<usize>().ok()?, h.parse::<usize>().ok()?)));
+        sizes_wh.push(parsed.with_context(|| format!("--sizes: {s:?} is not WIDTHxHEIGHT"))?);
+    }
+    let mut ort = Vec::new();
+    for &(w, h) in &sizes_wh {
+        let ms = if no_onnxruntime {
+            None
+        } else {
+            bench::onnxruntime_forward_ms(w, h, repeats)
+                .map_err(|e| eprintln!("onnxruntime yardstick unavailable: {e:#}"))
+                .ok()
+        };
+        if let Some(ms) = ms {
+            println!("onnxruntime (CPU) {w}x{h}: forward {ms:.0} ms");
+        }
+        ort.push(ms);
+    }
+    println!(
+        "{:<8} {:>9} {:>10} {:>14} {:>12} {:>18}",
+        "backend", "size", "fwd ms", "fwd+bwd ms", "fwd+bwd MB", "fwd+bwd / ort fwd"
+    );
+    let mut results = Vec::new();
+    for b in backends.unwrap_or(BackendKind::ALL.to_vec()) {
+        for (&(w, h), ort_ms) in sizes_wh.iter().zip(&ort) {
+            let m = bench::vgg_timing(b, w, h, warmup, repeats)?;
+            let ratio = ort_ms.map(|o| format!("{:.2}", m.forward_backward_ms / o)).unwrap_or("-".into());
+            let mem = m.forward_backward_peak_mb.map(|v| format!("{v:.0}")).unwrap_or("-".into());
+            let size = format!("{w}x{h}");
+            println!(
+                "{:<8} {:>9} {:>10.0} {:>14.0} {:>12} {:>18}",
+                m.backend, size, m.forward_ms, m.forward_backward_ms, mem, ratio
+            );
+            results.push(serde_json::json!({ "result": m, "onnxruntime_forward_ms": ort_ms }));
+        }
+    }
+    if let Some(p) = json {
+        files::write_json(&p, &results)?;
+    }
+    Ok(())
+}
+
+fn run_reference(ckpt: &Path, view: &str, out: &Path, data: Option<PathBuf>) -> Result<()> {
+    let (ck, dataset) = load_run(ckpt, data)?;
+    let spec: ViewSpec = view.parse()?;
+    let content = registration::write_reference_skeleton(&ck, &dataset, &spec, out)?;
+    println!("wrote {} (and depth.png, depth.npy, reference.toml)", content.display());
+    println!("paint over it and save the result as {}", out.join("style.png").display());
+    Ok(())
+}
+
+/// `refnpr stylize`: the config file (or the defaults), then the flags the
+/// user gave (`--epochs`, and any R³ flag over the file's `[register]`).
+fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Progress) -> Result<()> {
+    let Command::Stylize {
+        photo,
+        reference,
+        out,
+        config,
+        method,
+        style,
+        epochs,
+        backend,
+        data,
+        no_render,
+        registration,
+        register,
+    } = command
+    else {
+        unreachable!("called for the stylize subcommand")
+    };
+    let mut config = match &config {
+        Some(p) => StylizeConfig::from_file(p)?,
+        None => StylizeConfig::default(),
+    };
+    if let Some(e) = epochs {
+        config.schedule.image_epochs = e;
+    }
+    config.register =
+        config::overlay(&config.register, given_flags(&register, matches)?, "the command line", "R³ flags")?;
+    config.validate()?;
+    let render_test = !no_render;
+    let job = StylizeJob {
+        photo,
+        case: reference,
+        out,
+        config,
+        method,
+        backend: backend_or_env(backend)?,
+        style,
+        data,
+        registration,
+        render_test,
+    };
+    let r = run_stylize(&job, progress)?;
+    let phases: Vec<String> = r.seconds.iter().map(|(k, v)| format!("{k} {v:.1}s")).collect();
+    println!("stylized ({}) in {:.1} s: {}", r.method, r.total_seconds, phases.join(", "));
+    println!("wrote {}/checkpoint.bin, stylize.json{}", job.out.display(), if render_test { ", test/" } else { "" });
+    Ok(())
+}
+
+/// The fields of `parsed` (a flattened `clap::Args` struct) whose flags were
+/// given on the command line, as a TOML table to lay over a config.
+fn given_flags<T: serde::Serialize>(parsed: &T, matches: &ArgMatches) -> Result<toml::Value> {
+    let toml::Value::Table(all) = toml::Value::try_from(parsed)? else {
+        unreachable!("a struct serialises to a table")
+    };
+    let given = all.into_iter().filter(|(k, _)| matches.value_source(k) == Some(ValueSource::CommandLine)).collect();
+    Ok(toml::Value::Table(given))
+}
+
+/// `refnpr eval` without `--reference`: PSNR / SSIM of the run's test views
+/// against its dataset's (or `truth`'s).
+fn photoreal_eval(run: &Path, truth: Option<PathBuf>, backend: BackendKind) -> Result<serde_json::Value> {
+    let (ck, dataset) = checkpoint::load_run(run, truth.as_deref(), &backend.device())?;
+    let r = evaluate(&ck.grid, &dataset, &dataset.test, &ck.meta.config, None)?;
+    Ok(serde_json::json!({"psnr": r.psnr, "ssim": r.ssim, "views": r.per_view_psnr.len(), "data": dataset.root}))
+}
+
+fn run_train(
+    dir: &Path,
+    out: &Path,
+    config: Option<&Path>,
+    backend: BackendKind,
+    resume: bool,
+    steps: Option<usize>,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let kind = data::detect_kind(dir)?;
+    let base = TrainConfig::for_kind(kind);
+    let mut cfg = match config {
+        Some(p) => TrainConfig::from_file(p, &base)?,
+        None => base,
+    };
+    if let Some(s) = steps {
+        cfg.optim.steps = s;
+        cfg.validate()?;
+    }
+    let dataset = data::load(dir, &cfg.data)?;
+    for w in &dataset.warnings {
+        progress.warning(w.clone());
+    }
+    let size = dataset.train[0].camera.intrinsics;
+    progress.info(format!(
+        "{kind} scene {}: {} train / {} test views at {}x{}, backend {backend}",
+        dir.display(),
+        dataset.train.len(),
+        dataset.test.len(),
+        size.width,
+        size.height
+    ));
+    let m = run_training(&dataset, cfg, out, backend, resume, progress)?;
+    println!(
+        "test PSNR {:.2} dB, SSIM {:.4}, {} steps in {:.1} s; wrote {}",
+        m.test_psnr,
+        m.test_ssim,
+        m.steps,
+        m.train_seconds,
+        out.join("metrics.json").display()
+    );
+    Ok(())
 }
 
 // mimalloc keeps freed pages mapped: the renderer allocates and frees

@@ -6,7 +6,8 @@ use anyhow::{Context, Result, ensure};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-use crate::register::RegisterParams;
+use crate::reference::r3::RegisterParams;
+use crate::util::config;
 
 /// Phases and optimiser.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -31,7 +32,17 @@ pub struct ScheduleConfig {
 
 impl Default for ScheduleConfig {
     fn default() -> Self {
-        Self { ray_epochs: 2.0, ray_batch: 8192, lr_refit: 1e-2, image_epochs: 10, smooth_fraction: 0.25, lr: 0.1, lr_final: 0.01, rmsprop_beta: 0.95, eps: 1e-8 }
+        Self {
+            ray_epochs: 2.0,
+            ray_batch: 8192,
+            lr_refit: 1e-2,
+            image_epochs: 10,
+            smooth_fraction: 0.25,
+            lr: 0.1,
+            lr_final: 0.01,
+            rmsprop_beta: 0.95,
+            eps: 1e-8,
+        }
     }
 }
 
@@ -101,7 +112,13 @@ pub struct AblationConfig {
 
 impl Default for AblationConfig {
     fn default() -> Self {
-        Self { use_reference_loss: true, reference_rays_only: false, use_feature_loss: true, use_colour_loss: true, smooth_update: true }
+        Self {
+            use_reference_loss: true,
+            reference_rays_only: false,
+            use_feature_loss: true,
+            use_colour_loss: true,
+            smooth_update: true,
+        }
     }
 }
 
@@ -164,26 +181,30 @@ impl Default for StylizeConfig {
 impl StylizeConfig {
     /// Parses TOML over the defaults and validates.
     pub fn from_toml_str(text: &str, source: &str) -> Result<Self> {
-        let mut merged = toml::Value::try_from(Self::default()).context("serialising the default config")?;
-        let user: toml::Value = toml::from_str(text).with_context(|| format!("{source} is not valid TOML"))?;
-        crate::config::merge(&mut merged, user);
-        let cfg: Self = merged.try_into().with_context(|| format!("{source}: invalid stylize config"))?;
+        let cfg: Self = config::parse_over(&Self::default(), text, source, "stylize config")?;
         cfg.validate().with_context(|| format!("{source}: invalid stylize config"))?;
         Ok(cfg)
     }
 
     pub fn from_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read config {}", path.display()))?;
-        Self::from_toml_str(&text, &path.display().to_string())
+        Self::from_toml_str(&config::read(path)?, &path.display().to_string())
     }
 
     pub fn validate(&self) -> Result<()> {
         let s = &self.schedule;
         let l = &self.loss;
         ensure!(s.ray_epochs >= 0.0 && s.ray_epochs.is_finite(), "schedule.ray_epochs must be >= 0");
-        ensure!(s.ray_batch > 0 && self.render_chunk > 0 && self.search_chunk > 0, "schedule.ray_batch, render_chunk and search_chunk must be positive");
+        ensure!(
+            s.ray_batch > 0 && self.render_chunk > 0 && self.search_chunk > 0,
+            "schedule.ray_batch, render_chunk and search_chunk must be positive"
+        );
         ensure!((0.0..=1.0).contains(&s.smooth_fraction), "schedule.smooth_fraction must be in [0, 1]");
-        for (name, v) in [("schedule.lr", s.lr), ("schedule.lr_final", s.lr_final), ("schedule.lr_refit", s.lr_refit), ("schedule.eps", s.eps)] {
+        for (name, v) in [
+            ("schedule.lr", s.lr),
+            ("schedule.lr_final", s.lr_final),
+            ("schedule.lr_refit", s.lr_refit),
+            ("schedule.eps", s.eps),
+        ] {
             ensure!(v.is_finite() && v > 0.0, "{name} must be a positive number, got {v}");
         }
         ensure!((0.0..1.0).contains(&s.rmsprop_beta), "schedule.rmsprop_beta must be in [0, 1)");
@@ -200,7 +221,10 @@ impl StylizeConfig {
         ] {
             ensure!(v.is_finite() && v >= 0.0, "{name} must be >= 0, got {v}");
         }
-        ensure!((0.0..=2.0).contains(&l.colour_max_distance), "loss.colour_max_distance is a cosine distance, in [0, 2]");
+        ensure!(
+            (0.0..=2.0).contains(&l.colour_max_distance),
+            "loss.colour_max_distance is a cosine distance, in [0, 2]"
+        );
         ensure!(l.tv_fraction > 0.0 && l.tv_fraction <= 1.0, "loss.tv_fraction must be in (0, 1]");
         ensure!((0.0..1.0).contains(&self.min_sample_weight), "min_sample_weight must be in [0, 1)");
         self.register.validate()

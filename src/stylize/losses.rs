@@ -1,11 +1,11 @@
 //! The stylization losses as small tensor functions (each tested against a
 //! hand-computed value). Feature matrices are `[positions, channels]`.
 
+use burn::tensor::Tensor;
 use burn::tensor::module::avg_pool2d;
 use burn::tensor::ops::AvgPoolOptions;
-use burn::tensor::Tensor;
 
-use crate::features::{nearest_by_dot, normalise_rows};
+use crate::vgg::features::{nearest_by_dot, normalise_rows};
 
 /// Mean over rows of the cosine distance 1 - cos(a_i, b_i).
 pub fn cosine_distance(a: Tensor<2>, b: Tensor<2>) -> Tensor<1> {
@@ -66,6 +66,6 @@ pub fn nnfm_loss(render: Tensor<2>, style: Tensor<2>, chunk: usize) -> Tensor<1>
     let query = normalise_rows(render.clone().detach());
     let keys = normalise_rows(style.clone());
     let (idx, _) = nearest_by_dot(query.inner(), keys.inner(), chunk);
-    let idx = crate::tensor_util::indices(idx.into_iter().map(|i| i as i32).collect(), &style.device());
-    cosine_distance(render, crate::tensor_util::select_rows(style, idx))
+    let idx = crate::util::tensor::indices(idx.into_iter().map(|i| i as i32).collect(), &style.device());
+    cosine_distance(render, crate::util::tensor::select_rows(style, idx))
 }

@@ -10,9 +10,9 @@
 use anyhow::Result;
 use burn::tensor::{Device, Int, Tensor};
 
-use crate::features::{block_descriptors, block_matrix, nearest_by_dot};
 use crate::stylize::losses::patch_means;
-use crate::tensor_util::{floats, indices, to_vec};
+use crate::util::tensor::{floats, indices, to_vec};
+use crate::vgg::features::{block_descriptors, block_matrix, nearest_by_dot};
 use crate::vgg::{FeatureMaps, Vgg16, VggLayer, image_tensor};
 
 pub const RELU3: [VggLayer; 3] = [VggLayer::Relu3_1, VggLayer::Relu3_2, VggLayer::Relu3_3];
@@ -44,13 +44,20 @@ pub fn block_size(block: &[VggLayer], height: usize, width: usize) -> [usize; 2]
 
 /// Features of `image` for `blocks` (raw, `[positions, channels]` each) and,
 /// when `colour` is set, the normalised relu5 descriptors. No gradient.
-pub fn image_features(vgg: &Vgg16, image: &Image, device: &Device, blocks: &[&[VggLayer]], colour: bool) -> Result<(Vec<Tensor<2>>, Option<Tensor<2>>)> {
+pub fn image_features(
+    vgg: &Vgg16,
+    image: &Image,
+    device: &Device,
+    blocks: &[&[VggLayer]],
+    colour: bool,
+) -> Result<(Vec<Tensor<2>>, Option<Tensor<2>>)> {
     let mut layers: Vec<VggLayer> = blocks.iter().flat_map(|b| b.iter().copied()).collect();
     if colour {
         layers.extend(RELU5);
     }
     let maps = vgg.features(image.tensor(device), &layers)?;
-    let raw = blocks.iter().map(|b| block_matrix(&maps, b, 0, block_size(b, image.height, image.width)).inner()).collect();
+    let raw =
+        blocks.iter().map(|b| block_matrix(&maps, b, 0, block_size(b, image.height, image.width)).inner()).collect();
     let c = colour.then(|| block_descriptors(&maps, &RELU5, 0, block_size(&RELU5, image.height, image.width)).inner());
     Ok((raw, c))
 }
@@ -87,7 +94,7 @@ impl Template {
             let (content, colour) = image_features(vgg, &p.content, device, &FEATURE_BLOCKS, true)?;
             let (style, _) = image_features(vgg, &p.style, device, &FEATURE_BLOCKS, false)?;
             for b in 0..nb {
-                keys[b].push(crate::features::normalise_rows(content[b].clone()));
+                keys[b].push(crate::vgg::features::normalise_rows(content[b].clone()));
                 values[b].push(style[b].clone());
             }
             ckeys.push(colour.expect("colour descriptors requested"));
@@ -108,7 +115,7 @@ impl Template {
             .iter()
             .zip(&self.keys)
             .map(|(c, k)| {
-                let (idx, _) = nearest_by_dot(crate::features::normalise_rows(c.clone()), k.clone(), chunk);
+                let (idx, _) = nearest_by_dot(crate::vgg::features::normalise_rows(c.clone()), k.clone(), chunk);
                 indices(idx.into_iter().map(|i| i as i32).collect(), &k.device())
             })
             .collect()
@@ -123,7 +130,14 @@ impl Template {
     /// reference patch's style colour, and a mask that is 0 where the match's
     /// cosine distance exceeds `max_distance` or the view's own content patch
     /// is near white (> `white` in every channel: background).
-    pub fn colour_targets(&self, colour_descriptors: Tensor<2>, content: &Image, max_distance: f32, white: f32, chunk: usize) -> ColourTargets {
+    pub fn colour_targets(
+        &self,
+        colour_descriptors: Tensor<2>,
+        content: &Image,
+        max_distance: f32,
+        white: f32,
+        chunk: usize,
+    ) -> ColourTargets {
         let device = colour_descriptors.device();
         let (idx, sim) = nearest_by_dot(colour_descriptors, self.colour_keys.clone(), chunk);
         let own = to_vec(patch_means(content.tensor(&device), COLOUR_PATCH));
@@ -137,8 +151,13 @@ impl Template {
             .collect();
         let n = mask.len();
         let matched = mask.iter().filter(|&&m| m > 0.0).count();
-        let target = self.colour_values.clone().select(0, indices(idx.into_iter().map(|i| i as i32).collect(), &device));
-        ColourTargets { target, mask: floats(mask, [n, 1], &device), matched_fraction: matched as f32 / n.max(1) as f32 }
+        let target =
+            self.colour_values.clone().select(0, indices(idx.into_iter().map(|i| i as i32).collect(), &device));
+        ColourTargets {
+            target,
+            mask: floats(mask, [n, 1], &device),
+            matched_fraction: matched as f32 / n.max(1) as f32,
+        }
     }
 }
 

@@ -48,7 +48,7 @@ pub fn tol(cpu: f32) -> f32 {
 
 /// Every pixel ray of every view of an NDC dataset stays inside the grid's
 /// box from the near plane (z = -1) to infinity (z = 1).
-pub fn assert_ndc_rays_inside_box(ds: &refnpr::data::Dataset) {
+pub fn assert_ndc_rays_inside_box(ds: &refnpr::scene::data::Dataset) {
     let ndc = ds.ndc.expect("an NDC dataset");
     let eps = 1e-4;
     for v in ds.train.iter().chain(&ds.test) {
@@ -58,9 +58,25 @@ pub fn assert_ndc_rays_inside_box(ds: &refnpr::data::Dataset) {
                 assert!(
                     p.cmpge(ds.bbox_min - eps).all() && p.cmple(ds.bbox_max + eps).all(),
                     "{}: NDC point {p:?} outside the box {:?}..{:?}",
-                    v.name, ds.bbox_min, ds.bbox_max
+                    v.name,
+                    ds.bbox_min,
+                    ds.bbox_max
                 );
             }
         }
     }
+}
+
+/// `x` with coordinate `i` moved by `+h` and by `-h`.
+pub fn perturbed(x: &[f32], i: usize, h: f32) -> (Vec<f32>, Vec<f32>) {
+    let (mut plus, mut minus) = (x.to_vec(), x.to_vec());
+    plus[i] += h;
+    minus[i] -= h;
+    (plus, minus)
+}
+
+/// The central finite difference (loss(x + h e_i) - loss(x - h e_i)) / 2h.
+pub fn central_difference(x: &[f32], i: usize, h: f32, loss: impl Fn(&[f32]) -> f64) -> f64 {
+    let (plus, minus) = perturbed(x, i, h);
+    (loss(&plus) - loss(&minus)) / (2.0 * h as f64)
 }

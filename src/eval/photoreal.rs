@@ -1,0 +1,43 @@
+//! How well a field reproduces photos: PSNR and SSIM of rendered views.
+
+use std::path::Path;
+
+use anyhow::Result;
+use serde::{Deserialize, Serialize};
+
+use crate::eval::metrics;
+use crate::field::composite::render_view;
+use crate::field::grid::RadianceGrid;
+use crate::photo::config::TrainConfig;
+use crate::scene::data::{Dataset, View};
+
+/// Quality of a grid on a set of views.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct EvalReport {
+    pub psnr: f32,
+    pub ssim: f32,
+    pub per_view_psnr: Vec<f32>,
+}
+
+/// Renders each view, compares with its photo, optionally writes PNGs to `out`.
+pub fn evaluate(
+    grid: &RadianceGrid,
+    dataset: &Dataset,
+    views: &[View],
+    config: &TrainConfig,
+    out: Option<&Path>,
+) -> Result<EvalReport> {
+    let mut psnrs = Vec::new();
+    let mut ssims = Vec::new();
+    for (i, v) in views.iter().enumerate() {
+        let r =
+            render_view(grid, &v.camera, dataset.ndc.as_ref(), &config.march, dataset.background, config.render_chunk);
+        psnrs.push(metrics::psnr(&r.image.rgb, &v.rgb));
+        ssims.push(metrics::ssim(&r.image.rgb, &v.rgb, r.image.width, r.image.height));
+        if let Some(dir) = out {
+            r.image.save_png(&dir.join(format!("{i:04}.png")))?;
+        }
+    }
+    let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len().max(1) as f32;
+    Ok(EvalReport { psnr: mean(&psnrs), ssim: mean(&ssims), per_view_psnr: psnrs })
+}

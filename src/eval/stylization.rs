@@ -1,0 +1,425 @@
+//! Stylization metrics (paper section 4.3, supplementary A; SNeRF's
+//! consistency measure), computed from a stylized run and its reference case:
+//! - `ref_lpips`: perceptual distance between each style reference and the
+//!   stylized renders of the 10 render-path views nearest its camera. The
+//!   distance is LPIPS's unweighted "baseline" form (the `lpips` package with
+//!   `lpips=False`) on our VGG16: at relu1_2, relu2_2, relu3_3, relu4_3 and
+//!   relu5_3, channels unit-normalised per position, squared differences
+//!   summed over channels, averaged over positions, summed over layers. It is
+//!   not bit-identical to the paper's LPIPS (learned linear heads on
+//!   torchvision's VGG16), so compare our figures with each other, not with
+//!   the paper's table;
+//! - `gt_psnr`, `gt_psnr_occluded`: PSNR of the stylized test views against a
+//!   ground-truth stylized dataset (the procedural scene's `stylized/`), over
+//!   all pixels and over the surface pixels no reference camera sees;
+//! - `stability`: colour RMSE between render-path frames warped into each
+//!   other with the field's depth (frames 1 and 7 apart), over points visible
+//!   in both;
+//! - `robustness_psnr`: the stylized field's own renders at N path views used
+//!   as new references, stylized again with the run's method; PSNR between
+//!   the two fields' renders along the path, averaged.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, bail, ensure};
+use glam::Vec3;
+use serde::Serialize;
+
+use crate::eval::metrics;
+use crate::field::checkpoint::{self, Checkpoint};
+use crate::reference::case::{self, ReferenceCase};
+use crate::scene::camera::{Camera, from_ndc};
+use crate::scene::data::Dataset;
+use crate::stylize::config::StylizeConfig;
+use crate::stylize::run::run_stylize;
+use crate::stylize::{Method, StylizeJob};
+use crate::util::backend::BackendKind;
+use crate::util::files;
+use crate::util::image::Image;
+use crate::util::progress::{Event, Phase, Progress};
+use crate::util::tensor::scalar;
+use crate::vgg::{FeatureMaps, Vgg16, VggLayer};
+
+/// The layers of LPIPS's VGG variant.
+pub const LPIPS_LAYERS: [VggLayer; 5] =
+    [VggLayer::Relu1_2, VggLayer::Relu2_2, VggLayer::Relu3_3, VggLayer::Relu4_3, VggLayer::Relu5_3];
+
+/// Path views per reference for `ref_lpips` (paper: 10).
+pub const REF_LPIPS_VIEWS: usize = 10;
+
+/// Frame gaps of the short- and long-range consistency (SNeRF, StyleRF: 1 and 7).
+pub const STABILITY_GAPS: [usize; 2] = [1, 7];
+
+/// A rendered view with the world point each pixel sees (equation-4 depth;
+/// None = background).
+pub struct SurfaceRender {
+    pub camera: Camera,
+    pub image: Image,
+    pub points: Vec<Option<Vec3>>,
+}
+
+/// Renders `camera` from `ck` with its surface points in world space
+/// (forward-facing scenes: marched in NDC, points mapped back).
+pub fn render_surface(ck: &Checkpoint, camera: &Camera) -> SurfaceRender {
+    let ndc = ck.meta.ndc.as_ref();
+    let r = ck.render_view(camera);
+    let rays = camera.rays(ndc);
+    let points = r
+        .threshold_depth
+        .iter()
+        .zip(&rays)
+        .map(|(d, ray)| {
+            let p = ray.origin + (*d)? * ray.dir;
+            match ndc {
+                Some(n) => from_ndc(p, n),
+                None => Some(p),
+            }
+        })
+        .collect();
+    SurfaceRender { camera: *camera, image: r.image, points }
+}
+
+/// How far apart two depths may be and still be the same surface:
+/// `absolute + relative * depth` (world units).
+#[derive(Debug, Clone, Copy)]
+pub struct Tolerance {
+    pub absolute: f32,
+    pub relative: f32,
+}
+
+/// The pixel of `view` that sees world point `p`, when its own surface there
+/// lies at `p`'s depth within `tolerance` (not occluded, inside the frame).
+fn pixel_seeing(view: &SurfaceRender, p: Vec3, tolerance: Tolerance) -> Option<usize> {
+    let (x, y, z) = view.camera.project(p)?;
+    let (w, h) = (view.camera.intrinsics.width as i64, view.camera.intrinsics.height as i64);
+    let (px, py) = (x.round() as i64, y.round() as i64);
+    if px < 0 || py < 0 || px >= w || py >= h {
+        return None;
+    }
+    let i = (py * w + px) as usize;
+    let q = view.points[i]?;
+    let (_, _, zq) = view.camera.project(q)?;
+    ((z - zq).abs() <= tolerance.absolute + tolerance.relative * z).then_some(i)
+}
+
+/// For each point: whether any of the `references` sees it.
+pub fn visible_from(points: &[Option<Vec3>], references: &[SurfaceRender], tolerance: Tolerance) -> Vec<bool> {
+    points
+        .iter()
+        .map(|p| p.is_some_and(|p| references.iter().any(|r| pixel_seeing(r, p, tolerance).is_some())))
+        .collect()
+}
+
+/// Sum of squared colour differences (over channels) and the number of
+/// pixels, between the pixels of `to` and the pixels of `from` that see the
+/// same surface point.
+pub fn warp_error(from: &SurfaceRender, to: &SurfaceRender, tolerance: Tolerance) -> (f64, usize) {
+    let mut sum = 0.0f64;
+    let mut count = 0;
+    for (i, p) in to.points.iter().enumerate() {
+        let Some(j) = p.and_then(|p| pixel_seeing(from, p, tolerance)) else { continue };
+        sum += (0..3).map(|c| ((to.image.rgb[i * 3 + c] - from.image.rgb[j * 3 + c]) as f64).powi(2)).sum::<f64>();
+        count += 1;
+    }
+    (sum, count)
+}
+
+/// PSNR over the pixels where `mask` is true (None when there are none).
+pub fn psnr_masked(a: &[f32], b: &[f32], mask: &[bool]) -> Option<(f64, usize)> {
+    assert_eq!(a.len(), b.len());
+    assert_eq!(a.len(), mask.len() * 3);
+    let mut sum = 0.0f64;
+    let mut n = 0;
+    for (p, &m) in mask.iter().enumerate() {
+        if m {
+            sum += (0..3).map(|c| ((a[p * 3 + c] - b[p * 3 + c]) as f64).powi(2)).sum::<f64>();
+            n += 3;
+        }
+    }
+    (n > 0).then_some((sum, n))
+}
+
+/// LPIPS's baseline distance between two sets of feature maps (see the module notes).
+pub fn normalised_feature_distance(a: &FeatureMaps, b: &FeatureMaps, layers: &[VggLayer]) -> f32 {
+    layers
+        .iter()
+        .map(|&l| {
+            let unit = |t: burn::tensor::Tensor<4>| {
+                let norm = (t.clone() * t.clone()).sum_dim(1).sqrt() + 1e-10;
+                t / norm
+            };
+            let d = unit(a.get(l).clone()) - unit(b.get(l).clone());
+            let [_, _, h, w] = d.dims();
+            scalar((d.clone() * d).sum().reshape([1])) / (h * w) as f32
+        })
+        .sum()
+}
+
+/// `normalised_feature_distance` of two images of the same size, through VGG16.
+pub fn perceptual_distance(vgg: &Vgg16, a: &Image, b: &Image, device: &burn::tensor::Device) -> Result<f32> {
+    ensure!(
+        a.width == b.width && a.height == b.height,
+        "images of {}x{} and {}x{}",
+        a.width,
+        a.height,
+        b.width,
+        b.height
+    );
+    let fa = vgg.features(a.tensor(device), &LPIPS_LAYERS)?;
+    let fb = vgg.features(b.tensor(device), &LPIPS_LAYERS)?;
+    Ok(normalised_feature_distance(&fa, &fb, &LPIPS_LAYERS))
+}
+
+/// Indices of the `k` cameras nearest `to` (camera centres; ties by index).
+pub fn nearest_cameras(cameras: &[Camera], to: &Camera, k: usize) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..cameras.len()).collect();
+    order.sort_by(|&a, &b| {
+        cameras[a]
+            .position()
+            .distance(to.position())
+            .total_cmp(&cameras[b].position().distance(to.position()))
+            .then(a.cmp(&b))
+    });
+    order.truncate(k);
+    order
+}
+
+/// Short- and long-range consistency.
+#[derive(Debug, Clone, Serialize)]
+pub struct Stability {
+    pub gap: usize,
+    /// RMSE of colours in [0, 1] over the warped pixels of all frame pairs.
+    pub rmse: f32,
+    pub pixels: usize,
+}
+
+/// What `refnpr eval --reference` writes.
+#[derive(Debug, Clone, Serialize)]
+pub struct StylizationEval {
+    pub run: PathBuf,
+    pub reference: PathBuf,
+    pub ref_lpips: f32,
+    /// The path frames `ref_lpips` used, per reference.
+    pub ref_lpips_frames: Vec<Vec<usize>>,
+    pub gt: Option<PathBuf>,
+    pub gt_psnr: Option<f32>,
+    pub gt_psnr_occluded: Option<f32>,
+    /// Fraction of the test views' surface pixels no reference sees.
+    pub occluded_fraction: Option<f32>,
+    pub stability: Vec<Stability>,
+    pub robustness_psnr: Option<f32>,
+    pub path_frames: usize,
+}
+
+/// What to evaluate.
+pub struct EvalJob {
+    pub run: PathBuf,
+    pub case: PathBuf,
+    pub gt: Option<PathBuf>,
+    pub robustness: usize,
+    pub backend: BackendKind,
+    pub data: Option<PathBuf>,
+    /// Epochs of the robustness re-stylizations (None = the run's own schedule).
+    pub robustness_epochs: Option<usize>,
+}
+
+/// Depth tolerance of the visibility tests: three voxels; in forward-facing
+/// (NDC) scenes, whose voxels grow with depth in world units, 3 % of the depth.
+pub fn tolerance(ck: &Checkpoint) -> Tolerance {
+    match ck.meta.ndc {
+        Some(_) => Tolerance { absolute: 0.0, relative: 0.03 },
+        None => Tolerance { absolute: 3.0 * ck.grid.geometry.voxel_size().max_element(), relative: 0.0 },
+    }
+}
+
+/// `refnpr eval --run STYLE_RUN --reference CASE`.
+pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<StylizationEval> {
+    let device = job.backend.device();
+    let (ck, dataset) = checkpoint::load_run(&job.run, job.data.as_deref(), &device)?;
+    let case = ReferenceCase::load(&job.case)?;
+    if let Some(m) = case.scene_mismatch(&dataset) {
+        bail!("{m}: the reference case does not belong to the run {}", job.run.display());
+    }
+    let path = dataset.render_path(case.path_frames);
+    progress.info(format!("rendering {} path frames of {}", path.len(), job.run.display()));
+    let frames: Vec<SurfaceRender> = path.iter().map(|c| render_surface(&ck, c)).collect();
+    let (ref_lpips, ref_lpips_frames) = ref_lpips(&ck, &dataset, &case, &frames)?;
+    let truth = match &job.gt {
+        Some(gt) => Some(ground_truth_psnrs(&ck, &dataset, &case, gt)?),
+        None => None,
+    };
+    let robustness_psnr =
+        if job.robustness > 0 { Some(robustness(job, &ck, &frames, case.path_frames, progress)?) } else { None };
+    Ok(StylizationEval {
+        run: job.run.clone(),
+        reference: job.case.clone(),
+        ref_lpips,
+        ref_lpips_frames,
+        gt: job.gt.clone(),
+        gt_psnr: truth.map(|t| t.all),
+        gt_psnr_occluded: truth.and_then(|t| t.occluded),
+        occluded_fraction: truth.map(|t| t.occluded_fraction),
+        stability: stability(&frames, tolerance(&ck)),
+        robustness_psnr,
+        path_frames: path.len(),
+    })
+}
+
+/// Ref-LPIPS: the mean perceptual distance between each style reference and
+/// the `REF_LPIPS_VIEWS` path frames nearest its camera; also which frames.
+fn ref_lpips(
+    ck: &Checkpoint,
+    dataset: &Dataset,
+    case: &ReferenceCase,
+    frames: &[SurfaceRender],
+) -> Result<(f32, Vec<Vec<usize>>)> {
+    let device = ck.grid.device();
+    let vgg = Vgg16::load(&device);
+    let path: Vec<Camera> = frames.iter().map(|f| f.camera).collect();
+    let mut distances = Vec::new();
+    let mut used = Vec::new();
+    for (spec, cam) in case.references.iter().zip(&case.cameras(dataset)?) {
+        let near = nearest_cameras(&path, cam, REF_LPIPS_VIEWS);
+        let (w, h) = (path[0].intrinsics.width, path[0].intrinsics.height);
+        let (style, _) = case::read_style(&spec.style, w, h, ck.meta.background)?;
+        let style = Image::new(w as usize, h as usize, style);
+        for &i in &near {
+            distances.push(perceptual_distance(&vgg, &style, &frames[i].image, &device)?);
+        }
+        used.push(near);
+    }
+    Ok((distances.iter().sum::<f32>() / distances.len().max(1) as f32, used))
+}
+
+/// PSNRs of the stylized test views against a ground-truth stylized dataset.
+#[derive(Debug, Clone, Copy)]
+struct TruthPsnrs {
+    all: f32,
+    /// Over the surface pixels no reference sees (None when there are none).
+    occluded: Option<f32>,
+    occluded_fraction: f32,
+}
+
+fn ground_truth_psnrs(
+    ck: &Checkpoint,
+    dataset: &Dataset,
+    case: &ReferenceCase,
+    gt_dir: &std::path::Path,
+) -> Result<TruthPsnrs> {
+    let tol = tolerance(ck);
+    let gt = crate::scene::data::load(gt_dir, &ck.meta.config.data)
+        .with_context(|| format!("ground truth {}", gt_dir.display()))?;
+    ensure!(
+        gt.test.len() == dataset.test.len(),
+        "ground truth {} has {} test views, the run's dataset {}",
+        gt_dir.display(),
+        gt.test.len(),
+        dataset.test.len()
+    );
+    let refs: Vec<SurfaceRender> = case.cameras(dataset)?.iter().map(|c| render_surface(ck, c)).collect();
+    let (mut all, mut occ, mut surface, mut hidden) = ((0.0f64, 0usize), (0.0f64, 0usize), 0usize, 0usize);
+    for (v, t) in gt.test.iter().enumerate() {
+        ensure!(
+            t.camera.intrinsics.width == dataset.test[v].camera.intrinsics.width,
+            "ground truth test view {v} has another size"
+        );
+        let r = render_surface(ck, &t.camera);
+        all = (all.0 + metrics::squared_error(&r.image.rgb, &t.rgb), all.1 + r.image.rgb.len());
+        let seen = visible_from(&r.points, &refs, tol);
+        let unseen: Vec<bool> = r.points.iter().zip(&seen).map(|(p, s)| p.is_some() && !s).collect();
+        surface += r.points.iter().filter(|p| p.is_some()).count();
+        hidden += unseen.iter().filter(|u| **u).count();
+        if let Some((s, n)) = psnr_masked(&r.image.rgb, &t.rgb, &unseen) {
+            occ = (occ.0 + s, occ.1 + n);
+        }
+    }
+    Ok(TruthPsnrs {
+        all: metrics::psnr_from_mse((all.0 / all.1 as f64) as f32),
+        occluded: (occ.1 > 0).then(|| metrics::psnr_from_mse((occ.0 / occ.1 as f64) as f32)),
+        occluded_fraction: hidden as f32 / surface.max(1) as f32,
+    })
+}
+
+/// Short- and long-range consistency along the path.
+fn stability(frames: &[SurfaceRender], tol: Tolerance) -> Vec<Stability> {
+    STABILITY_GAPS
+        .iter()
+        .filter(|&&g| g < frames.len())
+        .map(|&gap| {
+            let (mut sum, mut n) = (0.0, 0);
+            for i in 0..frames.len() - gap {
+                let (s, c) = warp_error(&frames[i], &frames[i + gap], tol);
+                sum += s;
+                n += c;
+            }
+            Stability { gap, rmse: ((sum / (3 * n).max(1) as f64) as f32).sqrt(), pixels: n }
+        })
+        .collect()
+}
+
+/// Restylizes from `job.robustness` of the run's own path renders and
+/// compares the path renders of each result with the run's.
+fn robustness(
+    job: &EvalJob,
+    ck: &Checkpoint,
+    frames: &[SurfaceRender],
+    path_frames: usize,
+    progress: &dyn Progress,
+) -> Result<f32> {
+    let report_path = job.run.join("stylize.json");
+    let report: serde_json::Value = files::read_json(&report_path)
+        .with_context(|| format!("robustness needs the stylization's {}", report_path.display()))?;
+    let photo = PathBuf::from(report["photo"].as_str().context("stylize.json names no photo run")?);
+    let mut config: StylizeConfig =
+        serde_json::from_value(report["config"].clone()).context("stylize.json's config")?;
+    // The paper restylizes with the method under test: an ARF run is
+    // restylized by ARF with its own render as the style image.
+    let method: Method = serde_json::from_value(report["method"].clone()).context("stylize.json's method")?;
+    if let Some(e) = job.robustness_epochs {
+        config.schedule.image_epochs = e;
+    }
+    let work = job.run.join("robustness");
+    let mut psnrs = Vec::new();
+    for k in 0..job.robustness {
+        let frame = k * frames.len() / job.robustness;
+        let case_dir = work.join(format!("case_{frame}"));
+        frames[frame].image.save_png(&case_dir.join("style.png"))?;
+        files::write_text(
+            &case_dir.join(case::CASE_TOML),
+            &format!(
+                "# the stylized field's own render at path frame {frame} (refnpr eval --robustness)\n\
+                 path_frames = {path_frames}\n\n[[reference]]\nstyle = \"style.png\"\nview = \"path:{frame}\"\n"
+            ),
+        )?;
+        let out = work.join(format!("stylized_{frame}"));
+        progress.event(Event::Step {
+            phase: Phase::Robustness,
+            done: k,
+            total: job.robustness,
+            message: format!("restylizing from path frame {frame}"),
+        });
+        let restyle = StylizeJob {
+            photo: photo.clone(),
+            case: case_dir,
+            out: out.clone(),
+            config: config.clone(),
+            method,
+            backend: job.backend,
+            style: None,
+            data: job.data.clone(),
+            registration: None,
+            render_test: false,
+        };
+        run_stylize(&restyle, progress)?;
+        let again = checkpoint::load_with(&out, &ck.grid.device(), false)?;
+        // One PSNR over all the path frames' pixels, one render at a time.
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for f in frames {
+            let r = again.render_view(&f.camera);
+            sum += metrics::squared_error(&r.image.rgb, &f.image.rgb);
+            n += r.image.rgb.len();
+        }
+        psnrs.push(metrics::psnr_from_mse((sum / n as f64) as f32));
+    }
+    Ok(psnrs.iter().sum::<f32>() / psnrs.len() as f32)
+}

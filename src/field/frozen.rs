@@ -1,0 +1,211 @@
+//! Rendering with frozen density: stylization never changes the density, so
+//! which samples a ray has and how much each contributes (its weight
+//! T_i (1 - exp(-sigma_i delta_i)) and the ray's final transmittance) are
+//! fixed. They are computed once in plain Rust from the density mirror and
+//! kept; what is left for the Burn graph is the view-independent colour:
+//! gather the 8 corner SH rows, interpolate, `max(C0 c + 0.5, 0)`, weight
+//! and sum per ray. This is the whole differentiable renderer of the
+//! stylization phase, and it is linear in the samples, which makes the
+//! cached lists cheap to reuse every epoch.
+
+use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, activation::relu};
+
+use crate::field::composite::interpolate_corners;
+use crate::field::grid::RadianceGrid;
+use crate::field::march::{MarchParams, Marcher, SampleBatch};
+use crate::scene::camera::Ray;
+use crate::scene::sh;
+use crate::util::chunk_ranges;
+use crate::util::tensor::{assign_rows, floats, indices, to_vec};
+
+/// Rays marched at once: bounds the unfiltered sample buffers of one march
+/// (every sample of the chunk before the weight cut) to a few hundred MB.
+pub const MARCH_CHUNK: usize = 16384;
+
+/// Samples of a set of rays with their fixed weights (plain buffers).
+#[derive(Debug, Clone, Default)]
+pub struct FrozenSamples {
+    pub num_rays: usize,
+    /// Samples of ray r are `ray_offsets[r]..ray_offsets[r + 1]`.
+    pub ray_offsets: Vec<u32>,
+    /// 8 grid rows per sample (inactive corners point at an active row with weight 0).
+    pub corner_rows: Vec<i32>,
+    /// 8 colour interpolation weights per sample (renormalised over active corners).
+    pub colour_weights: Vec<f32>,
+    /// Compositing weight of each sample.
+    pub weight: Vec<f32>,
+    /// Transmittance left at the end of each ray (multiplies the background).
+    pub final_transmittance: Vec<f32>,
+}
+
+impl FrozenSamples {
+    /// Marches `rays` through the grid and computes every sample's weight from
+    /// the density mirror, exactly as `render::composite` does. Samples whose
+    /// weight is below `min_weight` are dropped (their colour cannot matter
+    /// to the image; 0 keeps all).
+    pub fn march(marcher: &Marcher, rays: &[Ray], params: &MarchParams, min_weight: f32) -> Self {
+        Self::march_within(marcher, rays, params, min_weight, MARCH_CHUNK, usize::MAX)
+            .expect("an unbounded march always fits")
+    }
+
+    /// `march`, `chunk` rays at a time, giving up (None) as soon as the kept
+    /// samples hold more than `budget` bytes. Marching in chunks bounds the
+    /// unfiltered sample buffers, which hold every sample of the marched rays
+    /// before the weight cut: fern's 1.9 M registered pixels marched at once
+    /// needed more than 20 GB there. The result does not depend on `chunk`.
+    pub fn march_within(
+        marcher: &Marcher,
+        rays: &[Ray],
+        params: &MarchParams,
+        min_weight: f32,
+        chunk: usize,
+        budget: usize,
+    ) -> Option<Self> {
+        let mut out = FrozenSamples { ray_offsets: Vec::with_capacity(rays.len() + 1), ..Default::default() };
+        out.ray_offsets.push(0);
+        for part in rays.chunks(chunk.max(1)) {
+            out.push_weighted(marcher.grid(), &marcher.samples(part, params), part.len(), min_weight);
+            if out.bytes() > budget {
+                return None;
+            }
+        }
+        Some(out)
+    }
+
+    /// Appends the `num_rays` rays of `batch`, keeping the samples whose
+    /// compositing weight exceeds `min_weight`.
+    fn push_weighted(&mut self, grid: &RadianceGrid, batch: &render::SampleBatch, num_rays: usize, min_weight: f32) {
+        for r in 0..num_rays {
+            let (lo, hi) = (batch.ray_offsets[r] as usize, batch.ray_offsets[r + 1] as usize);
+            let mut optical = 0.0f32;
+            for s in lo..hi {
+                let mut sigma = 0.0f32;
+                for c in 0..8 {
+                    sigma += batch.corner_weights[s * 8 + c] * grid.density_cpu[batch.corner_rows[s * 8 + c] as usize];
+                }
+                let tau = sigma.max(0.0) * batch.delta[s];
+                let w = (-optical).exp() * (1.0 - (-tau).exp());
+                optical += tau;
+                if w > min_weight || (min_weight == 0.0 && w >= 0.0) {
+                    self.corner_rows.extend_from_slice(&batch.corner_rows[s * 8..s * 8 + 8]);
+                    self.colour_weights.extend_from_slice(&batch.colour_weights[s * 8..s * 8 + 8]);
+                    self.weight.push(w);
+                }
+            }
+            self.final_transmittance.push((-optical).exp());
+            self.ray_offsets.push(self.weight.len() as u32);
+        }
+        self.num_rays += num_rays;
+    }
+
+    pub fn num_samples(&self) -> usize {
+        self.weight.len()
+    }
+
+    /// Bytes held by the buffers.
+    pub fn bytes(&self) -> usize {
+        self.ray_offsets.len() * 4
+            + self.corner_rows.len() * 8
+            + self.weight.len() * 4
+            + self.final_transmittance.len() * 4
+    }
+
+    /// The samples of the given rays (in that order; repeats allowed).
+    pub fn subset(&self, rays: &[usize]) -> FrozenSamples {
+        let mut out = FrozenSamples {
+            num_rays: rays.len(),
+            ray_offsets: Vec::with_capacity(rays.len() + 1),
+            ..Default::default()
+        };
+        out.ray_offsets.push(0);
+        for &r in rays {
+            let (lo, hi) = (self.ray_offsets[r] as usize, self.ray_offsets[r + 1] as usize);
+            out.corner_rows.extend_from_slice(&self.corner_rows[lo * 8..hi * 8]);
+            out.colour_weights.extend_from_slice(&self.colour_weights[lo * 8..hi * 8]);
+            out.weight.extend_from_slice(&self.weight[lo..hi]);
+            out.final_transmittance.push(self.final_transmittance[r]);
+            out.ray_offsets.push(out.weight.len() as u32);
+        }
+        out
+    }
+
+    /// Rays `start..start + len` (for chunked rendering).
+    pub fn range(&self, start: usize, len: usize) -> FrozenSamples {
+        let ids: Vec<usize> = (start..start + len).collect();
+        self.subset(&ids)
+    }
+
+    /// Concatenates sample sets (rays of `b` follow those of `self`).
+    pub fn append(&mut self, b: &FrozenSamples) {
+        if self.ray_offsets.is_empty() {
+            self.ray_offsets.push(0);
+        }
+        let base = self.weight.len() as u32;
+        self.ray_offsets.extend(b.ray_offsets[1..].iter().map(|o| o + base));
+        self.corner_rows.extend_from_slice(&b.corner_rows);
+        self.colour_weights.extend_from_slice(&b.colour_weights);
+        self.weight.extend_from_slice(&b.weight);
+        self.final_transmittance.extend_from_slice(&b.final_transmittance);
+        self.num_rays += b.num_rays;
+    }
+
+    /// The buffers on a device.
+    pub fn upload(&self, device: &Device) -> FrozenTensors {
+        let s = self.num_samples();
+        let mut ray_of_sample = Vec::with_capacity(s);
+        for r in 0..self.num_rays {
+            for _ in self.ray_offsets[r]..self.ray_offsets[r + 1] {
+                ray_of_sample.push(r as i32);
+            }
+        }
+        FrozenTensors {
+            num_rays: self.num_rays,
+            num_samples: s,
+            corner_rows: indices(self.corner_rows.clone(), device),
+            colour_weights: floats(self.colour_weights.clone(), [s * 8, 1], device),
+            weight: floats(self.weight.clone(), [s, 1], device),
+            ray_of_sample: indices(ray_of_sample, device),
+            final_transmittance: floats(self.final_transmittance.clone(), [self.num_rays, 1], device),
+        }
+    }
+}
+
+/// `FrozenSamples` uploaded to a device.
+pub struct FrozenTensors {
+    pub num_rays: usize,
+    pub num_samples: usize,
+    pub corner_rows: Tensor<1, Int>,
+    pub colour_weights: Tensor<2>,
+    pub weight: Tensor<2>,
+    pub ray_of_sample: Tensor<1, Int>,
+    pub final_transmittance: Tensor<2>,
+}
+
+/// Colours `[rays, 3]` of the rays from degree-0 SH rows `sh` (`[rows, 3]`):
+/// differentiable in `sh` when it is on an autodiff device.
+pub fn render_colour(sh: Tensor<2>, ft: &FrozenTensors, background: [f32; 3]) -> Tensor<2> {
+    let device = sh.device();
+    let bg = floats(background.to_vec(), [1, 3], &device);
+    let background_part = ft.final_transmittance.clone() * bg;
+    if ft.num_samples == 0 {
+        return background_part;
+    }
+    let coeff = interpolate_corners(sh, &ft.corner_rows, ft.colour_weights.clone());
+    let colour = relu(coeff * sh::C0 + 0.5);
+    let contribution = colour * ft.weight.clone();
+    assign_rows(Tensor::zeros([ft.num_rays, 3], &device), ft.ray_of_sample.clone(), contribution, IndexingUpdateOp::Add)
+        + background_part
+}
+
+/// Renders all rays of `samples` in chunks of `chunk` rays without autodiff:
+/// interleaved RGB (not clamped: the image losses see what the gradient
+/// will be injected into).
+pub fn render_plain(sh: &Tensor<2>, samples: &FrozenSamples, background: [f32; 3], chunk: usize) -> Vec<f32> {
+    let device = sh.device();
+    let mut out = Vec::with_capacity(samples.num_rays * 3);
+    for (start, len) in chunk_ranges(samples.num_rays, chunk) {
+        let ft = samples.range(start, len).upload(&device);
+        out.extend(to_vec(render_colour(sh.clone(), &ft, background)));
+    }
+    out
+}

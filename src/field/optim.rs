@@ -1,0 +1,192 @@
+//! What the optimisers of both stages share: RMSprop (dense, and lazy on a
+//! subset of rows), the total-variation regulariser, the subset of grid rows
+//! a step touches, and the exponential rate schedule.
+//!
+//! RMSprop rather than Adam: it is what Plenoxels uses with published,
+//! well-tested learning rates for density (30) and SH (1e-2), and its
+//! per-coordinate normalisation copes with the very different gradient
+//! scales of density and colour.
+
+use burn::tensor::{IndexingUpdateOp, Int, Tensor};
+
+use crate::util::tensor::assign_rows;
+
+/// Exponential decay from `a` to `b` over `t` in [0, 1].
+pub fn log_lerp(a: f32, b: f32, t: f32) -> f32 {
+    (a.ln() * (1.0 - t) + b.ln() * t).exp()
+}
+
+/// RMSprop: v = beta v + (1 - beta) g^2; x -= lr g / (sqrt(v) + eps).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Rmsprop {
+    pub beta: f32,
+    pub eps: f32,
+}
+
+impl Rmsprop {
+    /// The running average after gradient `grad`.
+    fn average(&self, avg: Tensor<2>, grad: Tensor<2>) -> Tensor<2> {
+        avg * self.beta + grad.clone() * grad * (1.0 - self.beta)
+    }
+
+    /// The normalised gradient g / (sqrt(v) + eps), before the learning rate.
+    fn normalised(&self, grad: Tensor<2>, avg: Tensor<2>) -> Tensor<2> {
+        grad / (avg.sqrt() + self.eps)
+    }
+
+    /// A step on every row of `param` (its running average `avg` has the same shape).
+    pub fn step_dense(&self, param: &mut Tensor<2>, avg: &mut Tensor<2>, grad: Tensor<2>, lr: f32) {
+        // Taking the tensors out of their slots leaves them uniquely owned,
+        // so the backend updates them in place instead of copying the grid.
+        let a = take(avg);
+        *avg = self.average(a, grad.clone());
+        let p = take(param);
+        *param = p - self.normalised(grad, avg.clone()) * lr;
+    }
+
+    /// A lazy step on the given rows only ("sparse" updates as Plenoxels:
+    /// cost follows the rows, not the grid); `grad` holds those rows'
+    /// gradients in the same order. Returns what was added to the rows.
+    pub fn step_rows(
+        &self,
+        param: &mut Tensor<2>,
+        avg: &mut Tensor<2>,
+        rows: &Tensor<1, Int>,
+        grad: Tensor<2>,
+        lr: f32,
+    ) -> Tensor<2> {
+        let v_old = avg.clone().select(0, rows.clone());
+        let v_new = self.average(v_old.clone(), grad.clone());
+        let update = self.normalised(grad, v_new.clone()) * (-lr);
+        let a = take(avg);
+        *avg = assign_rows(a, rows.clone(), v_new - v_old, IndexingUpdateOp::Add);
+        let p = take(param);
+        *param = assign_rows(p, rows.clone(), update.clone(), IndexingUpdateOp::Add);
+        update
+    }
+}
+
+/// Moves a tensor out of its slot (leaving a 1x1 placeholder).
+fn take(slot: &mut Tensor<2>) -> Tensor<2> {
+    let device = slot.device();
+    std::mem::replace(slot, Tensor::zeros([1, 1], &device))
+}
+
+/// How total variation combines the channels of a voxel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TvNorm {
+    /// sum over channels of sqrt(dx^2 + dy^2 + dz^2 + eps) (Plenoxels' fit).
+    PerChannel,
+    /// sqrt(sum over channels of dx^2 + dy^2 + dz^2, + eps) (the stylization).
+    PerVoxel,
+}
+
+/// Total variation summed over the rows of `centre`: `neighbours` yields,
+/// for the +x, +y and +z axes, the values at each row's neighbour (the row
+/// itself where there is none, which adds nothing). Callers scale the sum.
+/// The iterator is consumed lazily, one axis at a time, so each gather sits
+/// next to its use in the graph.
+pub fn total_variation(centre: Tensor<2>, neighbours: impl Iterator<Item = Tensor<2>>, norm: TvNorm) -> Tensor<1> {
+    let sq = neighbours
+        .map(|nb| {
+            let d = nb - centre.clone();
+            d.clone() * d
+        })
+        .reduce(|a, b| a + b)
+        .expect("three axes");
+    match norm {
+        TvNorm::PerChannel => (sq + 1e-9).sqrt().sum(),
+        TvNorm::PerVoxel => (sq.sum_dim(1) + 1e-9).sqrt().sum(),
+    }
+}
+
+/// A subset of grid rows (those a step touches) and the map grid row ->
+/// local index. Kept between steps: starting a new subset resets only the
+/// entries the last one set, so its cost follows the subset (a few hundred
+/// thousand rows), not the grid (millions).
+#[derive(Debug, Default)]
+pub struct RowSubset {
+    local_of: Vec<i32>,
+    rows: Vec<i32>,
+}
+
+impl RowSubset {
+    /// Empties the subset for a grid of `num_rows` rows.
+    pub fn clear(&mut self, num_rows: usize) {
+        if self.local_of.len() == num_rows {
+            for &r in &self.rows {
+                self.local_of[r as usize] = -1;
+            }
+        } else {
+            self.local_of = vec![-1; num_rows];
+        }
+        self.rows.clear();
+    }
+
+    /// The subset of the distinct rows in `rows`, in first-seen order.
+    pub fn of(num_rows: usize, rows: &[i32]) -> Self {
+        let mut s = Self::default();
+        s.reset_to(num_rows, rows);
+        s
+    }
+
+    /// Clears, then adds the distinct rows of `rows` in first-seen order.
+    pub fn reset_to(&mut self, num_rows: usize, rows: &[i32]) {
+        self.clear(num_rows);
+        for &r in rows {
+            self.insert(r);
+        }
+    }
+
+    /// Local index of `row`, adding it at the end if new.
+    pub fn insert(&mut self, row: i32) -> i32 {
+        let slot = &mut self.local_of[row as usize];
+        if *slot < 0 {
+            *slot = self.rows.len() as i32;
+            self.rows.push(row);
+        }
+        *slot
+    }
+
+    /// Local index of `row` (-1 when not in the subset).
+    pub fn local(&self, row: i32) -> i32 {
+        self.local_of[row as usize]
+    }
+
+    /// The grid rows, in local order.
+    pub fn rows(&self) -> &[i32] {
+        &self.rows
+    }
+
+    /// Exchanges the local indices `i` and `j`.
+    pub fn swap(&mut self, i: usize, j: usize) {
+        self.rows.swap(i, j);
+        self.local_of[self.rows[i] as usize] = i as i32;
+        self.local_of[self.rows[j] as usize] = j as i32;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::RowSubset;
+
+    /// A reused subset must behave as a fresh one: rows of the previous
+    /// subset are forgotten, local indices follow first-seen order.
+    #[test]
+    fn a_reused_row_subset_forgets_the_previous_rows() {
+        let mut s = RowSubset::default();
+        s.reset_to(10, &[7, 3, 7, 9, 3]);
+        assert_eq!(s.rows(), &[7, 3, 9]);
+        assert_eq!((s.local(7), s.local(3), s.local(9), s.local(0)), (0, 1, 2, -1));
+        s.reset_to(10, &[9, 1]);
+        assert_eq!(s.rows(), &[9, 1]);
+        assert_eq!((s.local(9), s.local(1), s.local(7), s.local(3)), (0, 1, -1, -1));
+        assert_eq!(s.insert(4), 2);
+        assert_eq!(s.insert(9), 0);
+        // A grid of another size starts from scratch.
+        s.reset_to(5, &[4]);
+        assert_eq!((s.rows(), s.local(4), s.local(1)), (&[4][..], 0, -1));
+        let fresh = RowSubset::of(10, &[2, 2, 5]);
+        assert_eq!(fresh.rows(), &[2, 5]);
+    }
+}

@@ -1,0 +1,232 @@
+//! Training configuration: TOML files with a default for every field.
+//! Unknown keys and out-of-range values are errors that name the file.
+
+use crate::field::march::MarchParams;
+use crate::scene::data::{DatasetKind, LoadOptions};
+use anyhow::{Context, Result, bail};
+
+use crate::util::config;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The voxel grid and its coarse-to-fine schedule.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GridConfig {
+    /// Lattice resolution at the start.
+    pub initial_res: [usize; 3],
+    /// Steps at which the grid is pruned and upsampled ...
+    pub upsample_steps: Vec<usize>,
+    /// ... to these resolutions (same length as `upsample_steps`).
+    pub upsample_res: Vec<[usize; 3]>,
+    /// Spherical-harmonic degree of the colour (0, 1 or 2).
+    pub sh_degree: u32,
+    /// Initial density of every voxel.
+    pub init_density: f32,
+    /// Voxels whose density (and their neighbours') is below this are pruned before upsampling.
+    pub prune_threshold: f32,
+}
+
+impl Default for GridConfig {
+    fn default() -> Self {
+        Self {
+            initial_res: [128; 3],
+            upsample_steps: vec![],
+            upsample_res: vec![],
+            sh_degree: 2,
+            init_density: 0.1,
+            prune_threshold: 1.0,
+        }
+    }
+}
+
+/// Optimiser (RMSprop, as Plenoxels) and regularisers.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OptimConfig {
+    /// Total optimisation steps.
+    pub steps: usize,
+    /// Rays per step.
+    pub batch_rays: usize,
+    /// Density learning rate at the start and at the end (exponential decay).
+    pub lr_density: f32,
+    pub lr_density_final: f32,
+    /// SH learning rate at the start and at the end (exponential decay).
+    pub lr_sh: f32,
+    pub lr_sh_final: f32,
+    /// The density learning rate ramps up from `lr_delay_mult` x over these steps.
+    pub lr_delay_steps: usize,
+    pub lr_delay_mult: f32,
+    /// RMSprop decay of the squared-gradient average.
+    pub rmsprop_beta: f32,
+    pub eps: f32,
+    /// Total-variation weights on density and SH (on the voxels a step touches).
+    pub tv_density: f32,
+    pub tv_sh: f32,
+    /// Fraction of the voxels a step touches that get the TV terms (a random subset).
+    pub tv_fraction: f32,
+}
+
+impl Default for OptimConfig {
+    fn default() -> Self {
+        Self {
+            steps: 3600,
+            batch_rays: 4096,
+            // Plenoxels' rates are density 30 -> ~1, SH 1e-2 -> ~1e-4 over
+            // ~50x more rays than a run here: each voxel is updated a few
+            // hundred times, and a higher, slower-decaying rate fits more
+            // (measured on lego and fern, README "Photorealistic fitting").
+            lr_density: 30.0,
+            lr_density_final: 5.0,
+            lr_sh: 0.03,
+            lr_sh_final: 6e-3,
+            lr_delay_steps: 100,
+            lr_delay_mult: 0.01,
+            rmsprop_beta: 0.95,
+            eps: 1e-8,
+            tv_density: 1e-5,
+            tv_sh: 1e-3,
+            tv_fraction: 0.1,
+        }
+    }
+}
+
+/// Everything `refnpr train` needs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    /// Seed of every random choice (ray batches).
+    pub seed: u64,
+    pub data: LoadOptions,
+    pub grid: GridConfig,
+    pub march: MarchParams,
+    pub optim: OptimConfig,
+    /// Write a checkpoint every this many steps (and at the end).
+    pub checkpoint_every: usize,
+    /// Rays per chunk when rendering whole images.
+    pub render_chunk: usize,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        Self {
+            seed: 20200823,
+            data: LoadOptions::default(),
+            grid: GridConfig::default(),
+            march: MarchParams::default(),
+            optim: OptimConfig::default(),
+            checkpoint_every: 1000,
+            render_chunk: 8192,
+        }
+    }
+}
+
+impl TrainConfig {
+    /// The built-in defaults for a dataset kind (the same values as `configs/<kind>.toml`).
+    pub fn for_kind(kind: DatasetKind) -> Self {
+        let mut c = Self::default();
+        match kind {
+            DatasetKind::Blender => {
+                c.grid.initial_res = [64; 3];
+                c.grid.upsample_steps = vec![250, 900];
+                c.grid.upsample_res = vec![[128; 3], [256; 3]];
+            }
+            DatasetKind::Llff => {
+                c.data.downscale = 8;
+                // The NDC box is wider than [-1, 1] in x and y (about 3 x 2.7
+                // on fern, see `data::llff`): ~128 voxels per NDC unit across.
+                c.grid.initial_res = [192, 176, 32];
+                c.grid.upsample_steps = vec![250];
+                c.grid.upsample_res = vec![[384, 352, 64]];
+                c.optim.steps = 3000;
+                c.optim.tv_density = 5e-4;
+                c.optim.tv_sh = 5e-3;
+            }
+            DatasetKind::Nsvf => {
+                c.grid.initial_res = [64; 3];
+                c.grid.upsample_steps = vec![250, 900];
+                c.grid.upsample_res = vec![[128; 3], [256; 3]];
+                c.data.background = [0.0; 3];
+            }
+        }
+        c
+    }
+
+    /// Parses a TOML config (missing fields take `base`'s values) and validates it.
+    pub fn from_toml_str(text: &str, base: &TrainConfig, source: &str) -> Result<Self> {
+        let cfg: TrainConfig = config::parse_over(base, text, source, "config")?;
+        cfg.validate().with_context(|| format!("{source}: invalid config"))?;
+        Ok(cfg)
+    }
+
+    pub fn from_file(path: &Path, base: &TrainConfig) -> Result<Self> {
+        Self::from_toml_str(&config::read(path)?, base, &path.display().to_string())
+    }
+
+    /// Checks every value is in range.
+    pub fn validate(&self) -> Result<()> {
+        let g = &self.grid;
+        let o = &self.optim;
+        let m = &self.march;
+        if g.initial_res.iter().any(|&r| !(2..=2048).contains(&r)) {
+            bail!("grid.initial_res must be between 2 and 2048 per axis, got {:?}", g.initial_res);
+        }
+        if g.upsample_steps.len() != g.upsample_res.len() {
+            bail!("grid.upsample_steps and grid.upsample_res must have the same length");
+        }
+        if g.upsample_steps.windows(2).any(|w| w[0] >= w[1]) {
+            bail!("grid.upsample_steps must be increasing");
+        }
+        if g.upsample_res.iter().flatten().any(|&r| !(2..=2048).contains(&r)) {
+            bail!("grid.upsample_res entries must be between 2 and 2048 per axis");
+        }
+        if g.sh_degree > 2 {
+            bail!("grid.sh_degree must be 0, 1 or 2, got {}", g.sh_degree);
+        }
+        if !(g.init_density.is_finite() && g.prune_threshold.is_finite() && g.prune_threshold >= 0.0) {
+            bail!("grid.init_density must be finite and grid.prune_threshold >= 0");
+        }
+        if o.steps == 0 || o.batch_rays == 0 {
+            bail!("optim.steps and optim.batch_rays must be positive");
+        }
+        for (name, v) in [
+            ("optim.lr_density", o.lr_density),
+            ("optim.lr_density_final", o.lr_density_final),
+            ("optim.lr_sh", o.lr_sh),
+            ("optim.lr_sh_final", o.lr_sh_final),
+            ("optim.eps", o.eps),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                bail!("{name} must be a positive number, got {v}");
+            }
+        }
+        if !(0.0..1.0).contains(&o.rmsprop_beta) {
+            bail!("optim.rmsprop_beta must be in [0, 1), got {}", o.rmsprop_beta);
+        }
+        if !(0.0..=1.0).contains(&o.lr_delay_mult) {
+            bail!("optim.lr_delay_mult must be in [0, 1], got {}", o.lr_delay_mult);
+        }
+        if !(o.tv_density >= 0.0 && o.tv_sh >= 0.0) {
+            bail!("optim.tv_density and optim.tv_sh must be >= 0");
+        }
+        if !(o.tv_fraction > 0.0 && o.tv_fraction <= 1.0) {
+            bail!("optim.tv_fraction must be in (0, 1], got {}", o.tv_fraction);
+        }
+        if !(m.step > 0.0 && m.step <= 4.0) {
+            bail!("march.step must be in (0, 4] voxels, got {}", m.step);
+        }
+        if !(m.stop_threshold > 0.0 && m.stop_threshold < 1.0) {
+            bail!("march.stop_threshold must be in (0, 1), got {}", m.stop_threshold);
+        }
+        if !(m.sigma_threshold >= 0.0 && m.depth_threshold > 0.0) {
+            bail!("march.sigma_threshold must be >= 0 and march.depth_threshold > 0");
+        }
+        if self.data.downscale == 0 || self.data.background.iter().any(|c| !(0.0..=1.0).contains(c)) {
+            bail!("data.downscale must be >= 1 and data.background in [0, 1]");
+        }
+        if self.checkpoint_every == 0 || self.render_chunk == 0 {
+            bail!("checkpoint_every and render_chunk must be positive");
+        }
+        Ok(())
+    }
+}

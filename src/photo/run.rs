@@ -1,0 +1,125 @@
+//! `refnpr train`: a training run in a folder - start or resume, drive the
+//! steps, checkpoint, evaluate the test views, write `metrics.json`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::Result;
+use serde::{Deserialize, Serialize};
+
+use crate::eval::metrics;
+use crate::eval::photoreal::evaluate;
+use crate::field::checkpoint;
+use crate::photo::config::TrainConfig;
+use crate::photo::trainer::Trainer;
+use crate::scene::data::Dataset;
+use crate::util::backend::BackendKind;
+use crate::util::files;
+use crate::util::memory::peak_rss_mb;
+use crate::util::progress::{Event, Phase, Progress};
+
+/// What `refnpr train` writes to `RUN/metrics.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct TrainMetrics {
+    pub test_psnr: f32,
+    pub test_ssim: f32,
+    pub train_seconds: f64,
+    pub steps: usize,
+    pub backend: String,
+    pub dataset: PathBuf,
+    pub kind: String,
+    pub grid_res: [usize; 3],
+    pub active_voxels: usize,
+    pub per_view_psnr: Vec<f32>,
+    pub peak_rss_mb: Option<f64>,
+}
+
+/// Trains (or, with `resume`, continues) a run in `out`: checkpoints, test
+/// renders in `out/test`, `config.toml` and `metrics.json`.
+pub fn run_training(
+    dataset: &Dataset,
+    config: TrainConfig,
+    out: &Path,
+    backend: BackendKind,
+    resume: bool,
+    progress: &dyn Progress,
+) -> Result<TrainMetrics> {
+    files::create_dir(out)?;
+    let mut trainer = start(dataset, config, out, backend, resume, progress)?;
+    files::write_toml(&out.join("config.toml"), &trainer.config)?;
+    let started = Instant::now();
+    fit(&mut trainer, dataset, out, progress)?;
+    trainer.save(dataset, out)?;
+    progress.event(Event::PhaseDone { phase: Phase::Fit, seconds: started.elapsed().as_secs_f64() });
+    let t = Instant::now();
+    progress.info(format!("evaluating {} test views", dataset.test.len()));
+    let report = evaluate(&trainer.grid, dataset, &dataset.test, &trainer.config, Some(&out.join("test")))?;
+    progress.event(Event::PhaseDone { phase: Phase::Evaluate, seconds: t.elapsed().as_secs_f64() });
+    let metrics = TrainMetrics {
+        test_psnr: report.psnr,
+        test_ssim: report.ssim,
+        train_seconds: trainer.train_seconds,
+        steps: trainer.step,
+        backend: backend.to_string(),
+        dataset: dataset.root.clone(),
+        kind: dataset.kind.to_string(),
+        grid_res: trainer.grid.geometry.res,
+        active_voxels: trainer.grid.num_rows(),
+        per_view_psnr: report.per_view_psnr,
+        peak_rss_mb: peak_rss_mb(),
+    };
+    files::write_json(&out.join("metrics.json"), &metrics)?;
+    Ok(metrics)
+}
+
+/// A fresh trainer, or the one `out`'s checkpoint holds when resuming.
+fn start(
+    dataset: &Dataset,
+    config: TrainConfig,
+    out: &Path,
+    backend: BackendKind,
+    resume: bool,
+    progress: &dyn Progress,
+) -> Result<Trainer> {
+    let device = backend.device();
+    let ckpt = out.join(checkpoint::CHECKPOINT_FILE);
+    if resume && ckpt.exists() {
+        let t = Trainer::resume(dataset, &ckpt, &device)?;
+        progress.info(format!("resuming {} at step {}", ckpt.display(), t.step));
+        Ok(t)
+    } else {
+        Trainer::new(dataset, config, &device)
+    }
+}
+
+/// Runs the remaining steps, checkpointing every `checkpoint_every`.
+/// `train_seconds` counts the time since the last checkpoint, so a resumed
+/// run adds only what it did itself.
+fn fit(trainer: &mut Trainer, dataset: &Dataset, out: &Path, progress: &dyn Progress) -> Result<()> {
+    let total = trainer.config.optim.steps;
+    progress.event(Event::Start { phase: Phase::Fit, done: trainer.step, total });
+    let mut segment = Instant::now();
+    let mut rays_done = 0usize;
+    while trainer.step < total {
+        let st = trainer.step_once()?;
+        rays_done += trainer.config.optim.batch_rays;
+        let rays_s = rays_done as f64 / segment.elapsed().as_secs_f64().max(1e-9);
+        let message = format!(
+            "loss {:.5} psnr {:.2} | {:.0} rays/s | {} samples | {} voxels",
+            st.mse,
+            metrics::psnr_from_mse(st.mse),
+            rays_s,
+            st.samples,
+            trainer.grid.num_rows()
+        );
+        progress.event(Event::Step { phase: Phase::Fit, done: trainer.step, total, message });
+        if trainer.step % trainer.config.checkpoint_every == 0 && trainer.step < total {
+            trainer.train_seconds += segment.elapsed().as_secs_f64();
+            segment = Instant::now();
+            rays_done = 0;
+            trainer.save(dataset, out)?;
+        }
+    }
+    trainer.train_seconds += segment.elapsed().as_secs_f64();
+    Ok(())
+}

@@ -1,0 +1,256 @@
+//! Photorealistic fitting of the radiance grid (Plenoxels-style): the
+//! `Trainer` and its one optimisation step.
+//!
+//! Each step: plain Rust draws a batch of training rays and marches them
+//! (`march::Marcher`); the rows of the grid those samples touch
+//! (plus their +x/+y/+z neighbours, for total variation) are gathered into a
+//! small leaf tensor that requires grad; the Burn graph renders the batch,
+//! adds the TV terms and back-propagates; RMSprop then updates just those
+//! rows of the grid and of its running averages ("lazy" RMSprop, as
+//! Plenoxels' sparse updates). Cost per step is proportional to the batch,
+//! not to the grid (RMSprop and TV: `field::optim`).
+
+use anyhow::Result;
+use burn::tensor::{Device, Tensor};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use std::path::Path;
+
+use crate::field::checkpoint::{self, CheckpointMeta};
+use crate::field::composite::{self, BatchTensors};
+use crate::field::grid::{GridGeometry, RadianceGrid};
+use crate::field::march::{BlockOccupancy, Marcher};
+use crate::field::optim::{Rmsprop, RowSubset, TvNorm, log_lerp, total_variation};
+use crate::photo::config::TrainConfig;
+use crate::scene::camera::Ray;
+use crate::scene::data::Dataset;
+use crate::util::rng::{Stream, step_rng};
+use crate::util::tensor::{floats, indices, scalar, select_rows, to_vec};
+
+/// RMSprop running averages of squared gradients, one per grid row.
+pub struct RmsState {
+    pub density: Tensor<2>,
+    pub sh: Tensor<2>,
+}
+
+impl RmsState {
+    pub fn zeros(grid: &RadianceGrid) -> Self {
+        let d = grid.device();
+        let n = grid.num_rows();
+        Self { density: Tensor::zeros([n, 1], &d), sh: Tensor::zeros([n, 3 * grid.num_basis()], &d) }
+    }
+}
+
+/// A training run's state.
+pub struct Trainer {
+    pub grid: RadianceGrid,
+    pub state: RmsState,
+    pub config: TrainConfig,
+    pub step: usize,
+    pub train_seconds: f64,
+    /// All training rays and their colours.
+    rays: Vec<Ray>,
+    colours: Vec<[f32; 3]>,
+    background: [f32; 3],
+    /// Empty-space skipping structure of the current grid (None: rebuild).
+    occupancy: Option<BlockOccupancy>,
+    /// The rows of the current step (reused between steps).
+    subset: RowSubset,
+}
+
+/// Numbers of one optimisation step.
+#[derive(Debug, Clone, Copy)]
+pub struct StepStats {
+    pub mse: f32,
+    pub samples: usize,
+    pub rows: usize,
+}
+
+/// The TV terms of a step: for each of the first `num_core` local rows, the
+/// local index of its +x, +y, +z neighbour (itself if none).
+struct TvNeighbours {
+    neighbours: [Vec<i32>; 3],
+    num_core: usize,
+}
+
+impl TvNeighbours {
+    /// Plenoxels' per-channel TV, averaged over the core rows, of `values`
+    /// (the step's local rows; the core rows come first).
+    fn total_variation(&self, values: Tensor<2>, device: &Device) -> Tensor<1> {
+        let centre = values.clone().narrow(0, 0, self.num_core);
+        let neighbours = self.neighbours.iter().map(|nb| select_rows(values.clone(), indices(nb.clone(), device)));
+        total_variation(centre, neighbours, TvNorm::PerChannel) / self.num_core as f32
+    }
+}
+
+/// Fills `subset` with the rows `corner_rows` touch, then moves a random
+/// `tv_fraction` of them to the front (a deterministic random subset, as
+/// Plenoxels regularises a random subset of voxels each step): those get TV
+/// terms, and their neighbours join the subset.
+fn step_rows(
+    grid: &RadianceGrid,
+    corner_rows: &[i32],
+    subset: &mut RowSubset,
+    tv_fraction: f32,
+    rng: &mut ChaCha8Rng,
+) -> TvNeighbours {
+    subset.reset_to(grid.num_rows(), corner_rows);
+    let touched = subset.rows().len();
+    let num_core = ((touched as f32 * tv_fraction).ceil() as usize).min(touched);
+    for i in 0..num_core {
+        let j = rng.random_range(i..touched);
+        subset.swap(i, j);
+    }
+    let mut neighbours: [Vec<i32>; 3] = std::array::from_fn(|_| Vec::with_capacity(num_core));
+    for li in 0..num_core {
+        let row = subset.rows()[li] as usize;
+        for (axis, list) in neighbours.iter_mut().enumerate() {
+            list.push(match grid.neighbour_row(row, axis) {
+                Some(nb) => subset.insert(nb),
+                None => li as i32,
+            });
+        }
+    }
+    TvNeighbours { neighbours, num_core }
+}
+
+impl Trainer {
+    /// A fresh run on a dataset.
+    pub fn new(dataset: &Dataset, config: TrainConfig, backend_device: &Device) -> Result<Self> {
+        config.validate()?;
+        let geo = GridGeometry::new(config.grid.initial_res, dataset.bbox_min, dataset.bbox_max);
+        let grid = RadianceGrid::new_dense(geo, config.grid.sh_degree, config.grid.init_density, backend_device)?;
+        let state = RmsState::zeros(&grid);
+        Ok(Self::assemble(dataset, config, grid, state, 0, 0.0))
+    }
+
+    /// Resumes from a checkpoint.
+    pub fn resume(dataset: &Dataset, ckpt_path: &Path, backend_device: &Device) -> Result<Self> {
+        let ck = checkpoint::load(ckpt_path, backend_device)?;
+        let state = RmsState { density: ck.opt_density, sh: ck.opt_sh };
+        Ok(Self::assemble(dataset, ck.meta.config.clone(), ck.grid, state, ck.meta.step, ck.meta.train_seconds))
+    }
+
+    fn assemble(
+        dataset: &Dataset,
+        config: TrainConfig,
+        grid: RadianceGrid,
+        state: RmsState,
+        step: usize,
+        secs: f64,
+    ) -> Self {
+        let (rays, colours) = dataset.pixel_rays(&dataset.train);
+        Self {
+            grid,
+            state,
+            config,
+            step,
+            train_seconds: secs,
+            rays,
+            colours,
+            background: dataset.background,
+            occupancy: None,
+            subset: RowSubset::default(),
+        }
+    }
+
+    /// Learning rates at the current step.
+    fn learning_rates(&self) -> (f32, f32) {
+        let o = &self.config.optim;
+        let t = (self.step as f32 / o.steps.max(1) as f32).min(1.0);
+        let mut lr_d = log_lerp(o.lr_density, o.lr_density_final, t);
+        if o.lr_delay_steps > 0 {
+            let ramp = (self.step as f32 / o.lr_delay_steps as f32).min(1.0);
+            lr_d *= o.lr_delay_mult + (1.0 - o.lr_delay_mult) * (0.5 * std::f32::consts::PI * ramp).sin();
+        }
+        (lr_d, log_lerp(o.lr_sh, o.lr_sh_final, t))
+    }
+
+    /// Applies the coarse-to-fine schedule if this step is an upsampling step.
+    fn maybe_upsample(&mut self) -> Result<bool> {
+        let g = &self.config.grid;
+        if let Some(i) = g.upsample_steps.iter().position(|&s| s == self.step) {
+            let res = g.upsample_res[i];
+            self.grid.prune(g.prune_threshold);
+            self.grid.upsample(res)?;
+            self.state = RmsState::zeros(&self.grid);
+            self.occupancy = None;
+            return Ok(true);
+        }
+        Ok(false)
+    }
+
+    /// One optimisation step.
+    pub fn step_once(&mut self) -> Result<StepStats> {
+        self.maybe_upsample()?;
+        let cfg = self.config.clone();
+        let plain = self.grid.device();
+        // Deterministic per step, so a resumed run draws the same batches.
+        let mut rng = step_rng(cfg.seed, Stream::Fit, self.step);
+        let n = cfg.optim.batch_rays;
+        let picks: Vec<usize> = (0..n).map(|_| rng.random_range(0..self.rays.len())).collect();
+        let rays: Vec<Ray> = picks.iter().map(|&i| self.rays[i]).collect();
+        let target: Vec<f32> = picks.iter().flat_map(|&i| self.colours[i]).collect();
+
+        let occupancy = self.occupancy.get_or_insert_with(|| BlockOccupancy::of(&self.grid));
+        let batch = Marcher::with_occupancy(&self.grid, occupancy).samples(&rays, &cfg.march);
+        let local = step_rows(&self.grid, &batch.corner_rows, &mut self.subset, cfg.optim.tv_fraction, &mut rng);
+        let rows_t = indices(self.subset.rows().to_vec(), &plain);
+        let subset = &self.subset;
+        let bt = BatchTensors::new(&batch, Some(&|r: i32| subset.local(r)), &plain);
+
+        let ld = self.grid.density.clone().select(0, rows_t.clone()).autodiff().require_grad();
+        let ls = self.grid.sh.clone().select(0, rows_t.clone()).autodiff().require_grad();
+        let out = composite::composite(ld.clone(), ls.clone(), &bt, self.background);
+        let target_t = floats(target, [n, 3], &plain);
+        let diff = out.rgb - target_t;
+        let mse = (diff.clone() * diff).mean();
+        let mut loss = mse.clone();
+        if cfg.optim.tv_density > 0.0 && local.num_core > 0 {
+            loss = loss + local.total_variation(ld.clone(), &plain) * cfg.optim.tv_density;
+        }
+        if cfg.optim.tv_sh > 0.0 && local.num_core > 0 {
+            loss = loss + local.total_variation(ls.clone(), &plain) * cfg.optim.tv_sh;
+        }
+        let grads = loss.backward();
+        let mse_value = scalar(mse.inner());
+        let (lr_d, lr_s) = self.learning_rates();
+        if let (Some(gd), Some(gs)) = (ld.grad(&grads), ls.grad(&grads)) {
+            let rmsprop = Rmsprop { beta: cfg.optim.rmsprop_beta, eps: cfg.optim.eps };
+            let new_d =
+                ld.inner() + rmsprop.step_rows(&mut self.grid.density, &mut self.state.density, &rows_t, gd, lr_d);
+            rmsprop.step_rows(&mut self.grid.sh, &mut self.state.sh, &rows_t, gs, lr_s);
+            for (r, v) in self.subset.rows().iter().zip(to_vec(new_d)) {
+                self.grid.density_cpu[*r as usize] = v;
+            }
+        }
+        self.step += 1;
+        Ok(StepStats { mse: mse_value, samples: batch.num_samples(), rows: self.subset.rows().len() })
+    }
+
+    /// The metadata a checkpoint of this run carries.
+    pub fn meta(&self, dataset: &Dataset) -> CheckpointMeta {
+        CheckpointMeta {
+            step: self.step,
+            geometry: self.grid.geometry,
+            sh_degree: self.grid.sh_degree,
+            ndc: dataset.ndc,
+            kind: dataset.kind,
+            background: dataset.background,
+            near_far: dataset.near_far,
+            data_dir: dataset.root.clone(),
+            config: self.config.clone(),
+            train_seconds: self.train_seconds,
+        }
+    }
+
+    pub fn save(&self, dataset: &Dataset, out: &Path) -> Result<()> {
+        checkpoint::save(
+            &out.join(checkpoint::CHECKPOINT_FILE),
+            &self.meta(dataset),
+            &self.grid,
+            &self.state.density,
+            &self.state.sh,
+        )
+    }
+}

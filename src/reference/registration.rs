@@ -1,0 +1,299 @@
+//! R³ on a trained photoreal run: `refnpr reference` (render the content
+//! view I_R and write a case skeleton to paint over) and `refnpr register`
+//! (depth of every view from the field, registration, `registration.bin`,
+//! report and overlays). The algorithm itself is `r3`.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Result, bail};
+use serde::{Deserialize, Serialize};
+
+use crate::field::checkpoint::Checkpoint;
+use crate::field::march::Marcher;
+use crate::reference::case::{self, ReferenceCase, ViewSpec};
+use crate::reference::r3::{Dictionary, Reference, RegisterParams, Surface, ViewRegistration, register_view};
+use crate::scene::camera::Camera;
+use crate::scene::data::Dataset;
+use crate::util::files;
+use crate::util::image::{self, Image};
+use crate::util::progress::{Progress, WarningLog};
+
+pub const REGISTRATION_FILE: &str = "registration.bin";
+const MAGIC: &[u8; 8] = b"REFNPRR2";
+
+/// The surface a camera sees in the photoreal field (equation-4 depth).
+pub fn field_surface(ck: &Checkpoint, camera: &Camera) -> Surface {
+    surface_with(&Marcher::new(&ck.grid), ck, camera)
+}
+
+fn surface_with(marcher: &Marcher, ck: &Checkpoint, camera: &Camera) -> Surface {
+    let rays = camera.rays(ck.meta.ndc.as_ref());
+    let depth = marcher.depths(&rays, &ck.meta.config.march);
+    Surface::from_depth(&rays, &depth, camera.intrinsics.width as usize, camera.intrinsics.height as usize)
+}
+
+/// `refnpr reference`: renders the content view and its depth at `view` and
+/// writes a case skeleton (`reference.toml` naming `style.png`).
+pub fn write_reference_skeleton(ck: &Checkpoint, dataset: &Dataset, view: &ViewSpec, out: &Path) -> Result<PathBuf> {
+    let camera = view.camera(dataset, case::DEFAULT_PATH_FRAMES)?;
+    files::create_dir(out)?;
+    let r = ck.render_view(&camera);
+    let (w, h) = (r.image.width, r.image.height);
+    r.image.save_png(&out.join("content.png"))?;
+    image::save_png(&out.join("depth.png"), w as u32, h as u32, &image::depth_to_rgb(&r.threshold_depth))?;
+    let depth: Vec<f32> = r.threshold_depth.iter().map(|d| d.unwrap_or(0.0)).collect();
+    crate::util::npy::write_f32(&out.join("depth.npy"), &[h, w], &depth)?;
+    let view_line = match view {
+        ViewSpec::Pose(c) => {
+            let m = c.c2w.transpose().to_cols_array_2d();
+            let k = c.intrinsics;
+            format!(
+                "c2w = {m:?}\nintrinsics = {{ width = {}, height = {}, fx = {}, fy = {}, cx = {}, cy = {} }}",
+                k.width, k.height, k.fx, k.fy, k.cx, k.cy
+            )
+        }
+        v => format!("view = \"{v}\""),
+    };
+    files::write_text(
+        &out.join(case::CASE_TOML),
+        &format!(
+            "# Reference case: paint over content.png (same size, {w}x{h}) and save it as style.png.\n\
+             # Several references: add more [[reference]] blocks.\n\
+             color_pre = true\n\n[[reference]]\nstyle = \"style.png\"\n{view_line}\n"
+        ),
+    )?;
+    Ok(out.join("content.png"))
+}
+
+/// The pseudo-rays of a registration, as written to `registration.bin`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RegistrationFile {
+    /// The settings it was made with.
+    pub params: RegisterParams,
+    /// The reference pixels themselves (every pixel of each reference view
+    /// with its stylized colour; `hits` marks the ones with a surface).
+    pub references: Vec<ReferencePixels>,
+    /// One entry per training view, in the dataset's order.
+    pub views: Vec<NamedRegistration>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReferencePixels {
+    pub camera: Camera,
+    pub colours: Vec<[f32; 3]>,
+    pub hits: Vec<bool>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct NamedRegistration {
+    pub name: String,
+    pub registration: ViewRegistration,
+}
+
+impl RegistrationFile {
+    pub fn save(&self, path: &Path) -> Result<()> {
+        files::save(path, MAGIC, self)
+    }
+
+    /// The file itself for a `refnpr register` output folder or a file path.
+    pub fn resolve(path: &Path) -> PathBuf {
+        if path.is_dir() { path.join(REGISTRATION_FILE) } else { path.to_path_buf() }
+    }
+
+    /// Reads `registration.bin` (or the file in a `refnpr register` output folder).
+    pub fn load(path: &Path) -> Result<Self> {
+        files::load(
+            &Self::resolve(path),
+            MAGIC,
+            "a refnpr registration file (made by this version's `refnpr register`)",
+        )
+    }
+
+    /// Registered pixels over pixels with a surface, all training views together.
+    pub fn fraction_overall(&self) -> f32 {
+        let registered: usize = self.views.iter().map(|v| v.registration.pixels.len()).sum();
+        let hits: usize = self.views.iter().map(|v| v.registration.hits as usize).sum();
+        if hits == 0 { 0.0 } else { registered as f32 / hits as f32 }
+    }
+
+    /// Every registered pixel: (training view, pixel, colour).
+    pub fn registered_pixels(&self) -> Vec<(u32, u32, [f32; 3])> {
+        self.views
+            .iter()
+            .enumerate()
+            .flat_map(|(v, r)| {
+                r.registration.pixels.iter().zip(&r.registration.colours).map(move |(&p, &c)| (v as u32, p, c))
+            })
+            .collect()
+    }
+
+    /// Refuses a file made for other training views or another case (other
+    /// cameras, or a style image repainted since), naming `source`.
+    pub fn check_matches(&self, dataset: &Dataset, references: &[ReferencePixels], source: &Path) -> Result<()> {
+        let names: Vec<&str> = self.views.iter().map(|v| v.name.as_str()).collect();
+        let expected: Vec<&str> = dataset.train.iter().map(|v| v.name.as_str()).collect();
+        if names != expected {
+            bail!(
+                "{} registers {} training views, the photoreal run's dataset has {} (or other names): \
+                 run `refnpr register` again for this run",
+                source.display(),
+                names.len(),
+                expected.len()
+            );
+        }
+        if self.references != references {
+            bail!(
+                "{} was made for other reference cameras, style images or photoreal field than the case's and run's current ones: \
+                 run `refnpr register` again (or leave out --registration)",
+                source.display()
+            );
+        }
+        Ok(())
+    }
+}
+
+/// What `register.json` reports.
+#[derive(Debug, Clone, Serialize)]
+pub struct RegisterReport {
+    pub params: RegisterParams,
+    pub references: Vec<String>,
+    pub dictionary_points: usize,
+    pub dictionary_cells: usize,
+    pub voxel_size: f32,
+    /// Registered pixels / pixels with a surface, per training view.
+    pub fraction_per_view: Vec<f32>,
+    pub fraction_overall: f32,
+    pub registered_pixels: usize,
+    pub depth_seconds: f64,
+    pub dictionary_seconds: f64,
+    pub register_seconds: f64,
+    pub warnings: Vec<String>,
+}
+
+/// The case's references lifted with the field's depth: what R³ stores, and
+/// the reference pixels as the registration file keeps them.
+pub fn lift_references(
+    ck: &Checkpoint,
+    marcher: &Marcher,
+    dataset: &Dataset,
+    case: &ReferenceCase,
+    warnings: &mut WarningLog,
+) -> Result<(Vec<Reference>, Vec<ReferencePixels>)> {
+    let mut refs = Vec::new();
+    let mut pixels = Vec::new();
+    for (spec, cam) in case.references.iter().zip(&case.cameras(dataset)?) {
+        let (w, h) = (cam.intrinsics.width, cam.intrinsics.height);
+        let (rgb, note) = case::read_style(&spec.style, w, h, ck.meta.background)?;
+        if let Some(n) = note {
+            warnings.push(n);
+        }
+        let surface = surface_with(marcher, ck, cam);
+        if surface.num_hits() == 0 {
+            warnings.push(format!(
+                "reference {} ({}) sees nothing of the scene: it contributes no rays",
+                spec.style.display(),
+                spec.view
+            ));
+        }
+        let colours: Vec<[f32; 3]> = image::pixels(&rgb).collect();
+        let hits = surface.points.iter().map(|p| p.is_some()).collect();
+        pixels.push(ReferencePixels { camera: *cam, colours: colours.clone(), hits });
+        refs.push(Reference { surface, colours });
+    }
+    Ok((refs, pixels))
+}
+
+/// Lifts the case's references with the field's depth and registers every
+/// training view. Returns the pseudo-rays and the report (no files written).
+pub fn register_case(
+    ck: &Checkpoint,
+    dataset: &Dataset,
+    case: &ReferenceCase,
+    params: &RegisterParams,
+    progress: &dyn Progress,
+) -> Result<(RegistrationFile, RegisterReport)> {
+    params.validate()?;
+    let mut warnings = WarningLog::new(progress);
+    if let Some(w) = case.scene_mismatch(dataset) {
+        warnings.push(w);
+    }
+    let t0 = Instant::now();
+    let marcher = Marcher::new(&ck.grid);
+    let (refs, ref_pixels) = lift_references(ck, &marcher, dataset, case, &mut warnings)?;
+    let views: Vec<Surface> = dataset.train.iter().map(|v| surface_with(&marcher, ck, &v.camera)).collect();
+    let depth_seconds = t0.elapsed().as_secs_f64();
+
+    let t1 = Instant::now();
+    let dict = Dictionary::build(&refs, params);
+    let dictionary_seconds = t1.elapsed().as_secs_f64();
+    let t2 = Instant::now();
+    let regs: Vec<ViewRegistration> = match &dict {
+        Some(d) => views.iter().map(|v| register_view(d, v, params)).collect(),
+        None => {
+            warnings.push(
+                "no reference pixel hits the scene (camera pointing away, or a case for another scene?): nothing registered"
+                    .to_string(),
+            );
+            views.iter().map(ViewRegistration::nothing_registered).collect()
+        }
+    };
+    let register_seconds = t2.elapsed().as_secs_f64();
+    let file = RegistrationFile {
+        params: *params,
+        references: ref_pixels,
+        views: dataset
+            .train
+            .iter()
+            .zip(regs)
+            .map(|(v, r)| NamedRegistration { name: v.name.clone(), registration: r })
+            .collect(),
+    };
+    let report = RegisterReport {
+        params: *params,
+        references: case.references.iter().map(|r| format!("{} @ {}", r.style.display(), r.view)).collect(),
+        dictionary_points: dict.as_ref().map_or(0, |d| d.num_points()),
+        dictionary_cells: dict.as_ref().map_or(0, |d| d.num_cells()),
+        voxel_size: dict.as_ref().map_or(0.0, |d| d.voxel_size()),
+        fraction_per_view: file.views.iter().map(|r| r.registration.fraction_of_hits()).collect(),
+        fraction_overall: file.fraction_overall(),
+        registered_pixels: file.views.iter().map(|r| r.registration.pixels.len()).sum(),
+        depth_seconds,
+        dictionary_seconds,
+        register_seconds,
+        warnings: warnings.into_vec(),
+    };
+    Ok((file, report))
+}
+
+/// `refnpr register`: registration plus `registration.bin`, `register.json`
+/// and overlay PNGs (registered pixels in their colours over the dimmed
+/// content render) for the first `overlays` training views.
+pub fn run_register(
+    ck: &Checkpoint,
+    dataset: &Dataset,
+    case: &ReferenceCase,
+    params: &RegisterParams,
+    out: &Path,
+    overlays: usize,
+    progress: &dyn Progress,
+) -> Result<RegisterReport> {
+    files::create_dir(out)?;
+    let (file, report) = register_case(ck, dataset, case, params, progress)?;
+    file.save(&out.join(REGISTRATION_FILE))?;
+    files::write_json(&out.join("register.json"), &report)?;
+    let dir = out.join("overlays");
+    for (view, reg) in dataset.train.iter().zip(&file.views).take(overlays) {
+        let content = ck.render_view(&view.camera).image;
+        let mut rgb: Vec<f32> = content.rgb.iter().map(|v| 0.25 + 0.35 * v).collect();
+        for (&p, c) in reg.registration.pixels.iter().zip(&reg.registration.colours) {
+            rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
+        }
+        Image::new(content.width, content.height, rgb).save_png(&dir.join(format!("{}.png", sanitize(&view.name))))?;
+    }
+    Ok(report)
+}
+
+fn sanitize(name: &str) -> String {
+    name.chars().map(|c| if c.is_ascii_alphanumeric() || c == '-' || c == '_' { c } else { '_' }).collect()
+}

@@ -1,0 +1,230 @@
+//! Posed-image datasets: one `Dataset` type and a loader per layout.
+
+pub mod blender;
+pub mod llff;
+pub mod nsvf;
+pub mod procedural;
+
+use crate::scene::camera::{Camera, Intrinsics, NdcParams, Ray, pose_is_valid};
+use anyhow::{Context, Result, bail};
+use glam::{Mat4, Vec3};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// Which layout a dataset came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum DatasetKind {
+    /// NeRF-synthetic / Blender (`transforms_*.json`), also our procedural scene.
+    Blender,
+    /// LLFF forward-facing (`poses_bounds.npy`), rendered in NDC.
+    Llff,
+    /// NSVF / Tanks&Temples (`rgb/`, `pose/`, `intrinsics.txt`).
+    Nsvf,
+}
+
+impl std::fmt::Display for DatasetKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        use clap::ValueEnum;
+        f.write_str(self.to_possible_value().expect("no skipped variants").get_name())
+    }
+}
+
+/// Options the loaders share.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LoadOptions {
+    /// Colour composited behind transparent pixels (Blender RGBA), and the
+    /// renderer's background colour.
+    pub background: [f32; 3],
+    /// Integer downscale of the images (1 = as stored). For LLFF this picks
+    /// `images_<factor>/` when it exists, else resizes `images/`.
+    pub downscale: u32,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self { background: [1.0, 1.0, 1.0], downscale: 1 }
+    }
+}
+
+/// One posed image (RGB in [0,1], row-major).
+#[derive(Debug, Clone)]
+pub struct View {
+    pub name: String,
+    pub camera: Camera,
+    pub rgb: Vec<f32>,
+}
+
+/// A scene: images, poses, intrinsics, splits, background, bounds.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    pub kind: DatasetKind,
+    pub root: PathBuf,
+    pub train: Vec<View>,
+    pub val: Vec<View>,
+    pub test: Vec<View>,
+    pub background: [f32; 3],
+    /// The box the radiance grid covers (for LLFF: NDC, z in [-1, 1], x and y
+    /// as far as the views' rays reach).
+    pub bbox_min: Vec3,
+    pub bbox_max: Vec3,
+    /// Present for forward-facing scenes: rays are warped to NDC.
+    pub ndc: Option<NdcParams>,
+    /// Scene depth bounds (LLFF, after rescaling).
+    pub near_far: Option<(f32, f32)>,
+    /// What the loader noticed that may give a poor result (the caller reports them).
+    pub warnings: Vec<String>,
+}
+
+/// Which split of a dataset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Split {
+    Train,
+    Val,
+    Test,
+}
+
+impl Dataset {
+    /// The ray (NDC-warped for forward-facing scenes) and colour of every pixel of `views`.
+    pub fn pixel_rays(&self, views: &[View]) -> (Vec<Ray>, Vec<[f32; 3]>) {
+        let mut rays = Vec::new();
+        let mut colours = Vec::new();
+        for v in views {
+            rays.extend(v.camera.rays(self.ndc.as_ref()));
+            colours.extend(crate::util::image::pixels(&v.rgb));
+        }
+        (rays, colours)
+    }
+
+    pub fn split(&self, s: Split) -> &[View] {
+        match s {
+            Split::Train => &self.train,
+            Split::Val => &self.val,
+            Split::Test => &self.test,
+        }
+    }
+
+    /// The standard render path: the LLFF spiral (120 poses, 2 rotations,
+    /// zrate 0.5) for forward-facing scenes, a circular orbit otherwise.
+    pub fn render_path(&self, n: usize) -> Vec<Camera> {
+        let intr = self.train[0].camera.intrinsics;
+        let poses: Vec<Mat4> = self.train.iter().chain(&self.test).chain(&self.val).map(|v| v.camera.c2w).collect();
+        let path = match (self.kind, self.near_far) {
+            (DatasetKind::Llff, Some((near, far))) => crate::scene::camera::llff_spiral(&poses, near, far, n, 2.0, 0.5),
+            _ => {
+                let centre = (self.bbox_min + self.bbox_max) * 0.5;
+                let (mut radius, mut elev) = (0.0, 0.0);
+                for p in &poses {
+                    let d = p.w_axis.truncate() - centre;
+                    radius += d.length();
+                    elev += (d.z / d.length()).asin();
+                }
+                let n_p = poses.len() as f32;
+                crate::scene::camera::orbit(centre, radius / n_p, (elev / n_p).to_degrees(), n)
+            }
+        };
+        path.into_iter().map(|c2w| Camera::new(intr, c2w)).collect()
+    }
+}
+
+/// Finds the layout of a dataset folder.
+pub fn detect_kind(dir: &Path) -> Result<DatasetKind> {
+    if !dir.exists() {
+        bail!("dataset folder {} does not exist", dir.display());
+    }
+    if !dir.is_dir() {
+        bail!("{} is not a folder", dir.display());
+    }
+    std::fs::read_dir(dir).with_context(|| format!("cannot read the folder {}", dir.display()))?;
+    if dir.join("transforms_train.json").exists() {
+        Ok(DatasetKind::Blender)
+    } else if dir.join("poses_bounds.npy").exists() {
+        Ok(DatasetKind::Llff)
+    } else if dir.join("pose").is_dir() && dir.join("rgb").is_dir() {
+        Ok(DatasetKind::Nsvf)
+    } else {
+        bail!(
+            "{} is not a dataset folder: expected transforms_train.json (Blender), \
+             poses_bounds.npy (LLFF) or rgb/ + pose/ + intrinsics.txt (NSVF / Tanks&Temples)",
+            dir.display()
+        )
+    }
+}
+
+/// Loads a dataset of any supported layout.
+pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
+    if opts.downscale == 0 {
+        bail!("downscale must be at least 1");
+    }
+    let ds = match detect_kind(dir)? {
+        DatasetKind::Blender => blender::load(dir, opts)?,
+        DatasetKind::Llff => llff::load(dir, opts)?,
+        DatasetKind::Nsvf => nsvf::load(dir, opts)?,
+    };
+    if ds.train.is_empty() {
+        bail!("{}: the training split is empty", dir.display());
+    }
+    if ds.test.is_empty() {
+        bail!("{}: the test split is empty", dir.display());
+    }
+    Ok(ds)
+}
+
+/// Reads an image as RGB in [0,1], compositing alpha over `background`,
+/// optionally downscaled by an integer factor.
+pub fn read_rgb(path: &Path, background: [f32; 3], downscale: u32) -> Result<(u32, u32, Vec<f32>)> {
+    if !path.exists() {
+        bail!("image {} does not exist", path.display());
+    }
+    let img = image::open(path).with_context(|| format!("cannot decode image {}", path.display()))?;
+    let mut img = img.to_rgba32f();
+    if downscale > 1 {
+        let (w, h) = (img.width() / downscale, img.height() / downscale);
+        if w == 0 || h == 0 {
+            bail!("image {} is too small to downscale by {downscale}", path.display());
+        }
+        img = image::imageops::resize(&img, w, h, image::imageops::FilterType::Triangle);
+    }
+    let (w, h) = img.dimensions();
+    Ok((w, h, composite_over(&img, background)))
+}
+
+/// Interleaved RGB in [0,1] of an RGBA image composited over `background`.
+pub fn composite_over(img: &image::Rgba32FImage, background: [f32; 3]) -> Vec<f32> {
+    let mut rgb = Vec::with_capacity(img.pixels().len() * 3);
+    for p in img.pixels() {
+        let a = p[3].clamp(0.0, 1.0);
+        for c in 0..3 {
+            rgb.push(p[c].clamp(0.0, 1.0) * a + background[c] * (1.0 - a));
+        }
+    }
+    rgb
+}
+
+/// Checks a pose for NaN / non-invertible rotation, naming the file.
+pub fn check_pose(m: &Mat4, source: &Path, what: &str) -> Result<()> {
+    if !pose_is_valid(m) {
+        bail!("{}: the pose of {what} contains NaN/inf or is not invertible", source.display());
+    }
+    Ok(())
+}
+
+/// Checks that all views of a dataset share one image size.
+pub fn check_sizes(views: &[View], intr: &Intrinsics, source: &Path) -> Result<()> {
+    for v in views {
+        let k = &v.camera.intrinsics;
+        if (k.width, k.height) != (intr.width, intr.height) {
+            bail!(
+                "{}: images have mixed sizes ({} is {}x{}, expected {}x{})",
+                source.display(),
+                v.name,
+                k.width,
+                k.height,
+                intr.width,
+                intr.height
+            );
+        }
+    }
+    Ok(())
+}

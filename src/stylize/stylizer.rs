@@ -1,0 +1,592 @@
+//! The `Stylizer`: one stylization's state and its phases - the colour
+//! refit, the content guides (renders, VGG16 features, TCM matches, colour
+//! targets), and the image epochs, each a loop over one `image_step`.
+//!
+//! Deferred back-propagation: a step renders the whole view without
+//! autodiff, takes the image losses' gradient with respect to the image
+//! through VGG16, then re-renders in chunks with autodiff and injects that
+//! gradient (`field::chunked_gradient`), so memory is bounded by the chunk.
+
+use std::borrow::Cow;
+
+use anyhow::{Result, bail};
+use burn::tensor::{Device, Int, Tensor};
+use rand::Rng;
+use rand::seq::SliceRandom;
+use rand_chacha::ChaCha8Rng;
+
+use crate::eval::metrics::psnr_from_mse;
+use crate::field::checkpoint::CheckpointMeta;
+use crate::field::frozen::{self, FrozenSamples};
+use crate::field::grid::RadianceGrid;
+use crate::field::march::{BlockOccupancy, MarchParams, Marcher};
+use crate::field::optim::log_lerp;
+use crate::reference::registration::RegistrationFile;
+use crate::scene::camera::{Camera, NdcParams, Ray, to_ndc};
+use crate::scene::data::Dataset;
+use crate::stylize::colour_transfer::ColourTransfer;
+use crate::stylize::config::StylizeConfig;
+use crate::stylize::field::{StyleField, chunked_gradient};
+use crate::stylize::losses;
+use crate::stylize::styles::is_background;
+use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
+use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
+use crate::util::image::Image;
+use crate::util::progress::{Event, Phase, Progress};
+use crate::util::rng::{Stream, epoch_rng, step_rng};
+use crate::util::tensor::{floats, image_tensor, scalar};
+use crate::vgg::{Vgg16, VggLayer};
+
+/// The interleaved `[pixels, 3]` gradient of an image loss (planar `[1, 3, H, W]` gradient in).
+fn interleaved(grad: Tensor<4>) -> Tensor<2> {
+    let [_, c, h, w] = grad.dims();
+    grad.reshape([c, h * w]).transpose()
+}
+
+/// Per-view data kept for the image epochs.
+pub struct ViewGuide {
+    /// Raw content features per block (for λ'; empty when unused).
+    content: Vec<Tensor<2>>,
+    /// TCM matches per block (Ref-NPR).
+    matches: Vec<Tensor<1, Int>>,
+    colour: Option<ColourTargets>,
+}
+
+/// Loss values of one image step.
+#[derive(Default, Clone, Copy)]
+struct ImageLosses {
+    total: f32,
+    feature: f32,
+    colour: f32,
+    content: f32,
+    image_tv: f32,
+}
+
+/// A stylization in progress: the field, its frozen sample lists, VGG16,
+/// the pseudo-rays, and the loss curve so far.
+pub struct Stylizer<'a> {
+    job: &'a StylizeJob,
+    cfg: &'a StylizeConfig,
+    dataset: &'a Dataset,
+    ndc: Option<NdcParams>,
+    background: [f32; 3],
+    march: MarchParams,
+    pub field: StyleField,
+    /// Empty-space skipping for every march (the density and rows are frozen).
+    occupancy: BlockOccupancy,
+    vgg: Vgg16,
+    ad: Device,
+    device: Device,
+    /// Cached sample lists of the training views (None = re-marched when needed).
+    view_samples: Vec<Option<FrozenSamples>>,
+    /// Sample lists of the reference views.
+    pub reference_samples: Vec<FrozenSamples>,
+    /// (reference, pixel) of every reference pixel that sees the scene.
+    reference_hits: Vec<(usize, usize)>,
+    registration: RegistrationFile,
+    /// All registered pixels: (view, pixel, colour).
+    pub registered: Vec<(u32, u32, [f32; 3])>,
+    /// Sample lists of the registered pixels, in that order (None = re-marched when picked).
+    registered_samples: Option<FrozenSamples>,
+    /// ARF: the photos are recoloured with this before the refit.
+    pub colour_transfer: Option<ColourTransfer>,
+    pub curve: Vec<CurvePoint>,
+}
+
+/// What the image epochs are guided by: the TCM template (Ref-NPR), the
+/// style features (ARF) and the per-view guides.
+pub struct Guidance {
+    pub template: Option<Template>,
+    pub style_bank: Option<Tensor<2>>,
+    pub guides: Vec<ViewGuide>,
+}
+
+impl<'a> Stylizer<'a> {
+    /// Sets up a stylization of `grid` (the photoreal field, cut to SH
+    /// degree 0 here) with the pseudo-rays of `registration`.
+    pub fn new(
+        job: &'a StylizeJob,
+        dataset: &'a Dataset,
+        grid: RadianceGrid,
+        meta: &CheckpointMeta,
+        registration: RegistrationFile,
+        colour_transfer: Option<ColourTransfer>,
+    ) -> Self {
+        let field = StyleField::new(grid);
+        let reference_hits = registration
+            .references
+            .iter()
+            .enumerate()
+            .flat_map(|(r, p)| p.hits.iter().enumerate().filter(|(_, h)| **h).map(move |(i, _)| (r, i)))
+            .collect();
+        let ad = job.backend.autodiff_device();
+        let mut st = Stylizer {
+            job,
+            cfg: &job.config,
+            dataset,
+            ndc: meta.ndc,
+            background: meta.background,
+            march: meta.config.march,
+            occupancy: BlockOccupancy::of(&field.grid),
+            field,
+            vgg: Vgg16::load(&ad),
+            ad,
+            device: job.backend.device(),
+            view_samples: vec![None; dataset.train.len()],
+            reference_samples: Vec::new(),
+            reference_hits,
+            registered: registration.registered_pixels(),
+            registration,
+            registered_samples: None,
+            colour_transfer,
+            curve: Vec::new(),
+        };
+        st.reference_samples = st.registration.references.iter().map(|p| st.march_camera(&p.camera)).collect();
+        st
+    }
+
+    /// Caches the sample lists, then builds the template (Ref-NPR) or the
+    /// style features (ARF) and every view's guide; also the fraction of
+    /// relu5 positions the colour loss supervises.
+    pub fn guidance(
+        &mut self,
+        styles: &[Image],
+        keep_content: bool,
+        colour: bool,
+        progress: &dyn Progress,
+    ) -> Result<(Guidance, f32)> {
+        self.cache_samples();
+        let (template, style_bank) = match self.job.method {
+            Method::RefNpr => (Some(self.template(styles)?), None),
+            Method::Arf => {
+                let (raw, _) = tcm::image_features(&self.vgg, &styles[0], &self.ad, &[&RELU3], false)?;
+                (None, Some(raw.into_iter().next().expect("one block")))
+            }
+        };
+        let (guides, matched) = self.guides(template.as_ref(), keep_content, colour, progress)?;
+        Ok((Guidance { template, style_bank, guides }, matched))
+    }
+
+    /// The image epochs, one `image_step` per training view in a seeded
+    /// order; the last `smooth_fraction` of them (Ref-NPR) are the smooth
+    /// content update, where the stylized field becomes the content
+    /// generator. Returns the seconds of the image epochs and of the smooth update.
+    pub fn image_epochs(
+        &mut self,
+        styles: &[Image],
+        mut guidance: Guidance,
+        progress: &dyn Progress,
+    ) -> Result<(f64, f64)> {
+        let s = &self.cfg.schedule;
+        let views = self.dataset.train.len();
+        let total_steps = s.image_epochs * views;
+        let smooth_epochs = if self.job.method == Method::RefNpr && self.cfg.ablation.smooth_update {
+            (s.image_epochs as f32 * s.smooth_fraction).round() as usize
+        } else {
+            0
+        };
+        let smooth_start = s.image_epochs - smooth_epochs.min(s.image_epochs);
+        self.field.reset_optimiser();
+        let started = std::time::Instant::now();
+        let mut smooth_started = None;
+        progress.event(Event::Start { phase: Phase::ImageEpochs, done: 0, total: total_steps });
+        let mut step = 0;
+        for epoch in 0..s.image_epochs {
+            let smooth = epoch >= smooth_start;
+            if smooth && smooth_started.is_none() {
+                smooth_started = Some(std::time::Instant::now());
+                let t = self.template(styles)?;
+                guidance.guides = self.guides(Some(&t), false, false, progress)?.0;
+                guidance.template = Some(t);
+            }
+            let mut order: Vec<usize> = (0..views).collect();
+            order.shuffle(&mut epoch_rng(self.cfg.seed, epoch));
+            for v in order {
+                let point = self.image_step(v, step, total_steps, &guidance, smooth)?;
+                let message = format!(
+                    "epoch {}/{} {:?} | total {:.4} ref {:.4} feat {:.4} colour {:.4}",
+                    epoch + 1,
+                    s.image_epochs,
+                    point.phase,
+                    point.total,
+                    point.reference,
+                    point.feature,
+                    point.colour
+                );
+                progress.event(Event::Step { phase: Phase::ImageEpochs, done: step + 1, total: total_steps, message });
+                self.curve.push(point);
+                step += 1;
+            }
+        }
+        let smooth_secs = smooth_started.map(|t| t.elapsed().as_secs_f64()).unwrap_or(0.0);
+        Ok((started.elapsed().as_secs_f64() - smooth_secs, smooth_secs))
+    }
+
+    /// One image step on training view `v`: the image losses by deferred
+    /// back-propagation, L_ref on a batch of pseudo-rays (Ref-NPR), SH TV,
+    /// one RMSprop step.
+    fn image_step(
+        &mut self,
+        v: usize,
+        step: usize,
+        total_steps: usize,
+        guidance: &Guidance,
+        smooth: bool,
+    ) -> Result<CurvePoint> {
+        let s = &self.cfg.schedule;
+        let mut rng = step_rng(self.cfg.seed, Stream::ImageStep, step);
+        let (grad, parts) = self.image_gradient(
+            v,
+            &guidance.guides[v],
+            guidance.template.as_ref(),
+            guidance.style_bank.as_ref(),
+            smooth,
+        )?;
+        let (ref_grad, ref_loss) =
+            if self.job.method == Method::RefNpr { self.reference_gradient(&mut rng) } else { (None, 0.0) };
+        let grad = match ref_grad {
+            Some(g) => grad + g,
+            None => grad,
+        };
+        let grad = self.with_tv(grad, &mut rng);
+        let lr = log_lerp(s.lr, s.lr_final, step as f32 / total_steps.max(1) as f32);
+        self.field.rmsprop(grad, lr, s.rmsprop_beta, s.eps);
+        Ok(CurvePoint {
+            phase: if smooth { StepKind::Smooth } else { StepKind::Image },
+            step,
+            total: parts.total + ref_loss,
+            reference: ref_loss,
+            feature: parts.feature,
+            colour: parts.colour,
+            content: parts.content,
+            image_tv: parts.image_tv,
+        })
+    }
+    fn view_samples(&self, v: usize) -> std::borrow::Cow<'_, FrozenSamples> {
+        match &self.view_samples[v] {
+            Some(s) => Cow::Borrowed(s),
+            None => Cow::Owned(self.march_camera(&self.dataset.train[v].camera)),
+        }
+    }
+
+    /// The ray through pixel `p` of training view `v` (NDC-warped for forward-facing scenes).
+    fn pixel_ray(&self, v: usize, p: usize) -> Ray {
+        let camera = &self.dataset.train[v].camera;
+        let w = camera.intrinsics.width as usize;
+        let r = camera.ray((p % w) as f32, (p / w) as f32);
+        match &self.ndc {
+            Some(n) => to_ndc(r, n),
+            None => r,
+        }
+    }
+
+    /// The samples of `rays` (on the frozen density's block occupancy, built
+    /// once per run), or None as soon as they would hold more than `budget` bytes.
+    fn march_rays_within(&self, rays: &[Ray], budget: usize) -> Option<FrozenSamples> {
+        let marcher = Marcher::with_occupancy(&self.field.grid, &self.occupancy);
+        FrozenSamples::march_within(
+            &marcher,
+            rays,
+            &self.march,
+            self.cfg.min_sample_weight,
+            frozen::MARCH_CHUNK,
+            budget,
+        )
+    }
+
+    fn march_rays(&self, rays: &[Ray]) -> FrozenSamples {
+        self.march_rays_within(rays, usize::MAX).expect("an unbounded march always fits")
+    }
+
+    pub fn march_camera(&self, camera: &Camera) -> FrozenSamples {
+        self.march_rays(&camera.rays(self.ndc.as_ref()))
+    }
+
+    fn render_view(&self, v: usize) -> Image {
+        let rgb =
+            frozen::render_plain(&self.field.grid.sh, &self.view_samples(v), self.background, self.cfg.render_chunk);
+        Image::of_camera(&self.dataset.train[v].camera, rgb)
+    }
+
+    pub fn render_reference(&self, r: usize) -> Image {
+        let rgb = frozen::render_plain(
+            &self.field.grid.sh,
+            &self.reference_samples[r],
+            self.background,
+            self.cfg.render_chunk,
+        );
+        Image::of_camera(&self.registration.references[r].camera, rgb)
+    }
+
+    /// Ray epochs: refit the degree-0 colour to the photos (MSE, SH TV);
+    /// ARF: to the recoloured photos.
+    pub fn refit(&mut self, progress: &dyn Progress) -> Result<()> {
+        let (rays, mut colours) = self.dataset.pixel_rays(&self.dataset.train);
+        if let Some(tf) = &self.colour_transfer {
+            // Background pixels stay: rays that miss the scene render the
+            // fixed background colour, and a recoloured target there could
+            // never be fitted (lego: 70 % of the pixels).
+            colours.iter_mut().filter(|c| !is_background(c, self.background)).for_each(|c| *c = tf.apply(*c));
+        }
+        let s = &self.cfg.schedule;
+        let steps = (s.ray_epochs as f64 * rays.len() as f64 / s.ray_batch as f64).ceil() as usize;
+        progress.event(Event::Start { phase: Phase::Refit, done: 0, total: steps });
+        self.field.reset_optimiser();
+        for step in 0..steps {
+            let mut rng = step_rng(self.cfg.seed, Stream::Refit, step);
+            let picks: Vec<usize> = (0..s.ray_batch).map(|_| rng.random_range(0..rays.len())).collect();
+            let batch_rays: Vec<Ray> = picks.iter().map(|&i| rays[i]).collect();
+            let target = floats(picks.iter().flat_map(|&i| colours[i]).collect(), [picks.len(), 3], &self.device);
+            let samples = self.march_rays(&batch_rays);
+            let (grad, mse) = self.mse_gradient(&samples, target, 1.0);
+            let grad = self.with_tv(grad, &mut rng);
+            self.field.rmsprop(grad, s.lr_refit, s.rmsprop_beta, s.eps);
+            let message = format!("mse {mse:.5} psnr {:.2}", psnr_from_mse(mse));
+            progress.event(Event::Step { phase: Phase::Refit, done: step + 1, total: steps, message });
+            self.curve.push(CurvePoint::refit(step, mse));
+        }
+        Ok(())
+    }
+
+    /// `weight` x the mean squared error of the rays' colours to `target`
+    /// (`[rays, 3]`): its SH gradient and its value.
+    fn mse_gradient(&self, samples: &FrozenSamples, target: Tensor<2>, weight: f32) -> (Tensor<2>, f32) {
+        let scale = weight / (3.0 * samples.num_rays.max(1) as f32);
+        let value = std::cell::Cell::new(0.0f32);
+        let grad = chunked_gradient(
+            &self.field.grid.sh,
+            samples,
+            self.background,
+            self.cfg.render_chunk,
+            &|rgb, start, len| {
+                let d = rgb - target.clone().narrow(0, start, len);
+                let loss = (d.clone() * d).sum() * scale;
+                value.set(value.get() + scalar(loss.clone().inner()));
+                loss
+            },
+        );
+        (grad, value.get())
+    }
+
+    pub fn with_tv(&self, grad: Tensor<2>, rng: &mut ChaCha8Rng) -> Tensor<2> {
+        self.field.add_tv_gradient(grad, self.cfg.loss.tv_sh, self.cfg.loss.tv_fraction, rng)
+    }
+
+    /// Caches sample lists up to the configured memory: first the
+    /// registered pixels (a batch of them is rendered every step), then the views.
+    pub fn cache_samples(&mut self) {
+        // Each march gives up as soon as it would overrun what is left of the
+        // budget, so memory never holds more than the budget plus one chunk.
+        let budget = self.cfg.sample_cache_mb * 1024 * 1024;
+        let mut used = 0usize;
+        if self.job.method == Method::RefNpr && !self.registered.is_empty() {
+            let rays: Vec<Ray> = self.registered.iter().map(|p| self.pixel_ray(p.0 as usize, p.1 as usize)).collect();
+            self.registered_samples = self.march_rays_within(&rays, budget);
+            used += self.registered_samples.as_ref().map_or(0, FrozenSamples::bytes);
+        }
+        for v in 0..self.dataset.train.len() {
+            let samples = self.march_rays_within(&self.dataset.train[v].camera.rays(self.ndc.as_ref()), budget - used);
+            used += samples.as_ref().map_or(0, FrozenSamples::bytes);
+            self.view_samples[v] = samples;
+        }
+    }
+
+    /// The pseudo-ray loss's gradient (λ_r times the mean squared error of
+    /// a batch of reference pixels plus that of a batch of registered pixels).
+    pub fn reference_gradient(&self, rng: &mut ChaCha8Rng) -> (Option<Tensor<2>>, f32) {
+        let l = &self.cfg.loss;
+        if !self.cfg.ablation.use_reference_loss || l.reference <= 0.0 {
+            return (None, 0.0);
+        }
+        let mut groups: Vec<(FrozenSamples, Vec<f32>)> = Vec::new();
+        // Reference pixels that see the scene.
+        let mut samples = FrozenSamples::default();
+        let mut target = Vec::new();
+        let hits = &self.reference_hits;
+        if !hits.is_empty() {
+            let picks: Vec<(usize, usize)> = if l.reference_rays >= hits.len() {
+                hits.clone()
+            } else {
+                (0..l.reference_rays).map(|_| hits[rng.random_range(0..hits.len())]).collect()
+            };
+            for r in 0..self.reference_samples.len() {
+                let ids: Vec<usize> = picks.iter().filter(|p| p.0 == r).map(|p| p.1).collect();
+                samples.append(&self.reference_samples[r].subset(&ids));
+                target.extend(ids.iter().flat_map(|&i| self.registration.references[r].colours[i]));
+            }
+            groups.push((samples, target));
+        }
+        if !self.cfg.ablation.reference_rays_only && !self.registered.is_empty() && l.registered_rays > 0 {
+            let picks: Vec<usize> =
+                (0..l.registered_rays).map(|_| rng.random_range(0..self.registered.len())).collect();
+            let samples = match &self.registered_samples {
+                Some(cached) => cached.subset(&picks),
+                None => {
+                    let rays: Vec<Ray> = picks
+                        .iter()
+                        .map(|&i| self.pixel_ray(self.registered[i].0 as usize, self.registered[i].1 as usize))
+                        .collect();
+                    self.march_rays(&rays)
+                }
+            };
+            groups.push((samples, picks.iter().flat_map(|&i| self.registered[i].2).collect()));
+        }
+        let mut total: Option<Tensor<2>> = None;
+        let mut value = 0.0;
+        for (samples, target) in groups {
+            let target = floats(target, [samples.num_rays, 3], &self.device);
+            let (g, v) = self.mse_gradient(&samples, target, l.reference);
+            value += v;
+            total = Some(match total {
+                None => g,
+                Some(t) => t + g,
+            });
+        }
+        (total, value)
+    }
+
+    /// Deferred back-propagation of the image losses of view `v`: the
+    /// gradient with respect to the SH rows, and the loss values.
+    pub fn image_gradient(
+        &self,
+        v: usize,
+        guide: &ViewGuide,
+        template: Option<&Template>,
+        style_bank: Option<&Tensor<2>>,
+        smooth: bool,
+    ) -> Result<(Tensor<2>, ImageLosses)> {
+        let samples = self.view_samples(v);
+        let cam = &self.dataset.train[v].camera;
+        let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
+        // 1. Full image, no autodiff.
+        let rgb = frozen::render_plain(&self.field.grid.sh, &samples, self.background, self.cfg.render_chunk);
+        // 2. Image losses on a leaf image, gradient with respect to the image.
+        let image = image_tensor(&rgb, w, h, &self.ad).require_grad();
+        let (loss, parts) = self.image_loss(image.clone(), guide, template, style_bank, smooth)?;
+        let grads = loss.backward();
+        let Some(g) = image.grad(&grads) else { bail!("the image losses do not depend on the image") };
+        let g = interleaved(g);
+        // 3. Chunked re-render with autodiff, injecting the image gradient.
+        let grad = chunked_gradient(
+            &self.field.grid.sh,
+            &samples,
+            self.background,
+            self.cfg.render_chunk,
+            &|rgb, start, len| (rgb * g.clone().narrow(0, start, len)).sum(),
+        );
+        Ok((grad, parts))
+    }
+
+    fn image_loss(
+        &self,
+        image: Tensor<4>,
+        guide: &ViewGuide,
+        template: Option<&Template>,
+        style_bank: Option<&Tensor<2>>,
+        smooth: bool,
+    ) -> Result<(Tensor<1>, ImageLosses)> {
+        let [_, _, h, w] = image.dims();
+        let l = &self.cfg.loss;
+        let mut parts = ImageLosses::default();
+        let mut total = losses::image_tv(image.clone()) * l.image_tv;
+        parts.image_tv = scalar(total.clone().inner()) / l.image_tv.max(1e-12);
+        match self.job.method {
+            Method::RefNpr => {
+                let template = template.expect("Ref-NPR has a template");
+                if self.cfg.ablation.use_feature_loss {
+                    let maps = self.vgg.features(image.clone(), &VggLayer::TCM)?;
+                    let render = tcm::render_blocks(&maps, &FEATURE_BLOCKS, h, w);
+                    let (weight, content_weight) =
+                        if smooth { (l.smooth_feature, 0.0) } else { (l.feature, l.content) };
+                    for (b, r) in render.into_iter().enumerate() {
+                        let style = losses::cosine_distance(r.clone(), template.guidance(b, &guide.matches[b]));
+                        parts.feature += scalar(style.clone().inner());
+                        total = total + style * weight;
+                        if content_weight > 0.0 && b < guide.content.len() {
+                            let c = losses::content_loss(r, guide.content[b].clone());
+                            parts.content += scalar(c.clone().inner());
+                            total = total + c * (weight * content_weight);
+                        }
+                    }
+                }
+                if let (Some(c), false) = (&guide.colour, smooth) {
+                    let loss = losses::colour_loss(
+                        losses::patch_means(image, tcm::COLOUR_PATCH),
+                        c.target.clone(),
+                        c.mask.clone(),
+                    );
+                    parts.colour = scalar(loss.clone().inner());
+                    total = total + loss * l.colour;
+                }
+            }
+            Method::Arf => {
+                let a = &self.cfg.arf;
+                let maps = self.vgg.features(image, &RELU3)?;
+                let render = tcm::render_blocks(&maps, &[&RELU3], h, w).remove(0);
+                let nnfm = losses::nnfm_loss(
+                    render.clone(),
+                    style_bank.expect("ARF has a style bank").clone(),
+                    self.cfg.search_chunk,
+                );
+                parts.feature = scalar(nnfm.clone().inner());
+                total = total + nnfm * a.nnfm;
+                if let (true, Some(content)) = (a.content > 0.0, guide.content.first()) {
+                    let c = losses::content_loss(render, content.clone());
+                    parts.content = scalar(c.clone().inner());
+                    total = total + c * a.content;
+                }
+            }
+        }
+        parts.total = scalar(total.clone().inner());
+        Ok((total, parts))
+    }
+
+    /// Content renders, features, TCM matches and colour targets of every view.
+    pub fn guides(
+        &self,
+        template: Option<&Template>,
+        keep_content: bool,
+        colour: bool,
+        progress: &dyn Progress,
+    ) -> Result<(Vec<ViewGuide>, f32)> {
+        let blocks: Vec<&[VggLayer]> = match self.job.method {
+            Method::RefNpr => FEATURE_BLOCKS.to_vec(),
+            Method::Arf => vec![&RELU3],
+        };
+        let n = self.dataset.train.len();
+        progress.event(Event::Start { phase: Phase::Guides, done: 0, total: n });
+        let mut out = Vec::with_capacity(n);
+        let mut matched = 0.0;
+        for v in 0..n {
+            let content = self.render_view(v);
+            let (raw, colour_desc) = tcm::image_features(&self.vgg, &content, &self.ad, &blocks, colour)?;
+            let matches = template.map(|t| t.matches(&raw, self.cfg.search_chunk)).unwrap_or_default();
+            let colour = match (template, colour_desc) {
+                (Some(t), Some(d)) => {
+                    let c = t.colour_targets(
+                        d,
+                        &content,
+                        self.cfg.loss.colour_max_distance,
+                        self.cfg.loss.colour_white,
+                        self.cfg.search_chunk,
+                    );
+                    matched += c.matched_fraction / n as f32;
+                    Some(c)
+                }
+                _ => None,
+            };
+            out.push(ViewGuide { content: if keep_content { raw } else { Vec::new() }, matches, colour });
+            progress.event(Event::Step { phase: Phase::Guides, done: v + 1, total: n, message: String::new() });
+        }
+        Ok((out, matched))
+    }
+
+    pub fn template(&self, styles: &[Image]) -> Result<Template> {
+        let pairs: Vec<ReferencePair> = styles
+            .iter()
+            .enumerate()
+            .map(|(r, s)| ReferencePair { content: self.render_reference(r), style: s.clone() })
+            .collect();
+        Template::build(&self.vgg, &pairs, &self.ad)
+    }
+}

@@ -1,0 +1,7 @@
+//! Around the pipeline: benchmarks (`bench`), the one-command demo on the
+//! procedural scene (`demo`), and a painterly repaint filter to try
+//! stylization without painting by hand (`paint`).
+
+pub mod bench;
+pub mod demo;
+pub mod paint;

@@ -1,0 +1,104 @@
+//! The one image type of the library, and writing what a person looks at:
+//! PNG images, depth maps, GIF animations.
+
+use anyhow::{Context, Result};
+use burn::tensor::{Device, Tensor};
+use image::codecs::gif::{GifEncoder, Repeat};
+use image::{Delay, Frame, RgbImage, RgbaImage};
+use std::path::Path;
+
+use crate::scene::camera::Camera;
+
+/// An RGB image: interleaved, row-major, values in [0, 1].
+#[derive(Debug, Clone, PartialEq)]
+pub struct Image {
+    pub width: usize,
+    pub height: usize,
+    pub rgb: Vec<f32>,
+}
+
+impl Image {
+    pub fn new(width: usize, height: usize, rgb: Vec<f32>) -> Self {
+        assert_eq!(rgb.len(), width * height * 3, "an RGB buffer of {width}x{height}");
+        Self { width, height, rgb }
+    }
+
+    /// An image the size of `camera`'s view.
+    pub fn of_camera(camera: &Camera, rgb: Vec<f32>) -> Self {
+        Self::new(camera.intrinsics.width as usize, camera.intrinsics.height as usize, rgb)
+    }
+
+    /// The `[1, 3, H, W]` tensor of the image (VGG16's input layout).
+    pub fn tensor(&self, device: &Device) -> Tensor<4> {
+        crate::util::tensor::image_tensor(&self.rgb, self.width, self.height, device)
+    }
+
+    pub fn to_rgb8(&self) -> RgbImage {
+        to_rgb8(self.width as u32, self.height as u32, &self.rgb)
+    }
+
+    pub fn save_png(&self, path: &Path) -> Result<()> {
+        save_png(path, self.width as u32, self.height as u32, &self.rgb)
+    }
+}
+
+/// The pixels of an interleaved RGB buffer as `[r, g, b]` triples.
+pub fn pixels(rgb: &[f32]) -> impl Iterator<Item = [f32; 3]> + '_ {
+    rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]])
+}
+
+/// Quantises RGB floats in [0,1] to bytes.
+pub fn to_rgb8(w: u32, h: u32, rgb: &[f32]) -> RgbImage {
+    let bytes = rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
+    RgbImage::from_raw(w, h, bytes).expect("buffer matches image size")
+}
+
+pub fn save_png(path: &Path, w: u32, h: u32, rgb: &[f32]) -> Result<()> {
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    to_rgb8(w, h, rgb).save(path).with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// A depth map as a colour image: near = bright yellow, far = dark purple
+/// (a compact 'inferno'-like ramp), misses black. Range: 2nd-98th percentile of hits.
+pub fn depth_to_rgb(depth: &[Option<f32>]) -> Vec<f32> {
+    let mut hits: Vec<f32> = depth.iter().flatten().copied().collect();
+    let (lo, hi) = if hits.is_empty() {
+        (0.0, 1.0)
+    } else {
+        hits.sort_by(|a, b| a.total_cmp(b));
+        let p = |q: f32| hits[((hits.len() - 1) as f32 * q) as usize];
+        (p(0.02), p(0.98).max(p(0.02) + 1e-6))
+    };
+    let ramp = [[0.0, 0.0, 0.02], [0.34, 0.06, 0.43], [0.73, 0.21, 0.33], [0.98, 0.55, 0.04], [0.99, 1.0, 0.64]];
+    let mut out = Vec::with_capacity(depth.len() * 3);
+    for d in depth {
+        match d {
+            None => out.extend([0.0, 0.0, 0.0]),
+            Some(d) => {
+                let x = (1.0 - ((d - lo) / (hi - lo)).clamp(0.0, 1.0)) * 0.95 + 0.05;
+                let f = x * (ramp.len() - 1) as f32;
+                let i = (f.floor() as usize).min(ramp.len() - 2);
+                let t = f - i as f32;
+                for c in 0..3 {
+                    out.push(ramp[i][c] * (1.0 - t) + ramp[i + 1][c] * t);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Writes an animated GIF (looping), one frame per image.
+pub fn save_gif(path: &Path, frames: &[RgbImage], delay_ms: u32) -> Result<()> {
+    let file = std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
+    let mut enc = GifEncoder::new_with_speed(std::io::BufWriter::new(file), 10);
+    enc.set_repeat(Repeat::Infinite).context("gif repeat")?;
+    for f in frames {
+        let rgba: RgbaImage = image::DynamicImage::ImageRgb8(f.clone()).to_rgba8();
+        enc.encode_frame(Frame::from_parts(rgba, 0, 0, Delay::from_numer_denom_ms(delay_ms, 1)))
+            .with_context(|| format!("cannot write a frame of {}", path.display()))?;
+    }
+    Ok(())
+}

@@ -1,0 +1,31 @@
+//! Generic helpers every stage uses: the backend choice, tensor conversions,
+//! the one `Image` type with PNG/GIF/npy I/O, file writes that name the file
+//! on failure, progress events, per-step random generators, memory readings.
+
+pub mod backend;
+pub mod config;
+pub mod files;
+pub mod image;
+pub mod memory;
+pub mod npy;
+pub mod progress;
+pub mod rng;
+pub mod tensor;
+
+/// `(start, len)` of consecutive pieces of at most `chunk` items covering
+/// `0..total` (a `chunk` of 0 counts as 1).
+pub fn chunk_ranges(total: usize, chunk: usize) -> impl Iterator<Item = (usize, usize)> {
+    let chunk = chunk.max(1);
+    (0..total).step_by(chunk).map(move |start| (start, chunk.min(total - start)))
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn chunk_ranges_cover_everything_once() {
+        let r: Vec<_> = super::chunk_ranges(10, 4).collect();
+        assert_eq!(r, vec![(0, 4), (4, 4), (8, 2)]);
+        assert_eq!(super::chunk_ranges(0, 4).count(), 0);
+        assert_eq!(super::chunk_ranges(3, 0).count(), 3);
+    }
+}

@@ -1,0 +1,208 @@
+//! Progress as typed events. Library code never prints: long work reports
+//! `Event`s to a `Progress` sink it is given. `Console` is the one sink that
+//! writes: indicatif bars on a terminal, plain periodic lines otherwise (logs,
+//! CI); `Quiet` drops everything (tests, library users with their own UI).
+
+use std::io::IsTerminal;
+use std::sync::Mutex;
+
+use indicatif::{ProgressBar, ProgressStyle};
+
+/// The long-running parts of the pipeline.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Phase {
+    /// Photorealistic fitting (steps).
+    Fit,
+    /// Rendering the test views and comparing them with the photos.
+    Evaluate,
+    /// Rendering the frames of a camera path.
+    Render,
+    /// R³: depth of every view and registration.
+    Register,
+    /// The stylization's colour refit (steps).
+    Refit,
+    /// Content renders, VGG16 features, TCM matches of every view.
+    Guides,
+    /// The stylization's image epochs (one step per view).
+    ImageEpochs,
+    /// Restylizations of `refnpr eval --robustness`.
+    Robustness,
+    /// The demo's stages.
+    Demo,
+}
+
+impl std::fmt::Display for Phase {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Phase::Fit => "fit",
+            Phase::Evaluate => "evaluate",
+            Phase::Render => "render",
+            Phase::Register => "register",
+            Phase::Refit => "refit",
+            Phase::Guides => "content features",
+            Phase::ImageEpochs => "image epochs",
+            Phase::Robustness => "robustness",
+            Phase::Demo => "demo",
+        })
+    }
+}
+
+/// What long work reports.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Event {
+    /// A phase of `total` steps starts, `done` of them already done (a resumed run).
+    Start { phase: Phase, done: usize, total: usize },
+    /// `done` of `total` steps are done; `message` holds the current figures.
+    Step { phase: Phase, done: usize, total: usize, message: String },
+    /// The phase ended after `seconds`.
+    PhaseDone { phase: Phase, seconds: f64 },
+    /// What is being done or was written (a line for the user).
+    Info(String),
+    /// Something that may give a poor result, though the work goes on.
+    Warning(String),
+}
+
+/// Where events go.
+pub trait Progress: Sync {
+    fn event(&self, event: Event);
+
+    fn info(&self, message: String) {
+        self.event(Event::Info(message));
+    }
+
+    fn warning(&self, message: String) {
+        self.event(Event::Warning(message));
+    }
+}
+
+/// Drops every event.
+pub struct Quiet;
+
+impl Progress for Quiet {
+    fn event(&self, _: Event) {}
+}
+
+/// Lines printed per phase when stderr is not a terminal.
+const PLAIN_LINES_PER_PHASE: usize = 20;
+
+/// Bars on a terminal, plain lines on stderr otherwise.
+pub struct Console {
+    terminal: bool,
+    bar: Mutex<Option<ProgressBar>>,
+}
+
+impl Default for Console {
+    fn default() -> Self {
+        Self { terminal: std::io::stderr().is_terminal(), bar: Mutex::new(None) }
+    }
+}
+
+#[allow(clippy::print_stderr)] // the one sink that prints
+impl Console {
+    fn with_bar(&self, f: impl FnOnce(&mut Option<ProgressBar>)) {
+        let mut slot = self.bar.lock().unwrap_or_else(|e| e.into_inner());
+        f(&mut slot);
+    }
+
+    /// Prints a line above the bar (or plainly).
+    fn line(&self, text: String) {
+        self.with_bar(|bar| match bar {
+            Some(b) => b.println(text),
+            None => eprintln!("{text}"),
+        });
+    }
+}
+
+#[allow(clippy::print_stderr)] // the one sink that prints
+impl Progress for Console {
+    fn event(&self, event: Event) {
+        match event {
+            Event::Start { done, total, .. } if self.terminal => self.with_bar(|bar| {
+                let b = ProgressBar::new(total as u64);
+                b.set_style(
+                    ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} {msg}")
+                        .expect("valid template")
+                        .progress_chars("=> "),
+                );
+                b.set_position(done as u64);
+                if let Some(old) = bar.replace(b) {
+                    old.finish_and_clear();
+                }
+            }),
+            Event::Start { .. } => {}
+            Event::Step { phase, done, total, message } => {
+                if self.terminal {
+                    self.with_bar(|bar| {
+                        if let Some(b) = bar {
+                            b.set_position(done as u64);
+                            b.set_message(message);
+                        }
+                    });
+                } else if done == total || done % (total / PLAIN_LINES_PER_PHASE).max(1) == 0 {
+                    eprintln!("{phase} {done}/{total} {message}");
+                }
+            }
+            Event::PhaseDone { phase, seconds } => {
+                self.with_bar(|bar| {
+                    if let Some(b) = bar.take() {
+                        b.finish_and_clear();
+                    }
+                });
+                eprintln!("{phase} done in {seconds:.1} s");
+            }
+            Event::Info(text) => self.line(text),
+            Event::Warning(text) => self.line(format!("warning: {text}")),
+        }
+    }
+}
+
+/// Collects every event (tests, and callers that report afterwards).
+#[derive(Default)]
+pub struct Recorder {
+    pub events: Mutex<Vec<Event>>,
+}
+
+impl Recorder {
+    pub fn warnings(&self) -> Vec<String> {
+        let events = self.events.lock().unwrap_or_else(|e| e.into_inner());
+        events.iter().filter_map(|e| if let Event::Warning(w) = e { Some(w.clone()) } else { None }).collect()
+    }
+}
+
+impl Progress for Recorder {
+    fn event(&self, event: Event) {
+        self.events.lock().unwrap_or_else(|e| e.into_inner()).push(event);
+    }
+}
+
+/// Warnings of one run: each is reported to the sink as it happens and kept
+/// for the run's report file.
+pub struct WarningLog<'a> {
+    progress: &'a dyn Progress,
+    list: Vec<String>,
+}
+
+impl<'a> WarningLog<'a> {
+    pub fn new(progress: &'a dyn Progress) -> Self {
+        Self { progress, list: Vec::new() }
+    }
+
+    /// The sink the warnings go to.
+    pub fn progress(&self) -> &'a dyn Progress {
+        self.progress
+    }
+
+    pub fn push(&mut self, message: String) {
+        self.progress.warning(message.clone());
+        self.list.push(message);
+    }
+
+    /// Keeps warnings that were already reported (a stage's report).
+    pub fn extend_reported(&mut self, reported: impl IntoIterator<Item = String>) {
+        self.list.extend(reported);
+    }
+
+    pub fn into_vec(self) -> Vec<String> {
+        self.list
+    }
+}
