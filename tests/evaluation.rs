@@ -4,7 +4,7 @@
 mod common;
 
 use glam::{Mat4, Vec3};
-use refnpr::eval::stylization::{self, SurfaceRender, Tolerance};
+use refnpr::eval::stylization::{self as evaluation, SurfaceRender, Tolerance};
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
 use refnpr::util::image::Image;
 use refnpr::util::tensor::floats;
@@ -74,8 +74,8 @@ fn plane_view(camera: Camera, colour: &dyn Fn(Vec3) -> [f32; 3]) -> SurfaceRende
             (t > 0.0).then(|| r.origin + t * r.dir)
         })
         .collect();
-    let rgb = points.iter().flat_map(|p| p.map(|p| colour(p)).unwrap_or([1.0; 3])).collect();
-    SurfaceRender { camera, rgb, points }
+    let rgb = points.iter().flat_map(|p| p.map(colour).unwrap_or([1.0; 3])).collect();
+    SurfaceRender { camera, image: Image::of_camera(&camera, rgb), points }
 }
 
 const TOL: Tolerance = Tolerance { absolute: 0.05, relative: 0.0 };

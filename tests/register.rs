@@ -255,21 +255,12 @@ fn no_reference_hits_gives_no_dictionary() {
 /// (measured 3.0 %), coverage within the angle threshold >= 60 % (79 %).
 #[test]
 fn registration_with_trained_depth() {
-    use refnpr::photo::config::TrainConfig;
-    use refnpr::scene::data::{self, DatasetKind};
+    use refnpr::scene::data;
     let t = common::TempDir::new("r3");
     let opts = SceneOptions { seed: 2, size: 96, num_train: 24, num_val: 1, num_test: 2 };
     procedural::write_scene(&t.path().join("scene"), &opts).unwrap();
     let ds = data::load(&t.path().join("scene"), &Default::default()).unwrap();
-    let mut c = TrainConfig::for_kind(DatasetKind::Blender);
-    c.grid.initial_res = [64; 3];
-    c.grid.upsample_steps = vec![200];
-    c.grid.upsample_res = vec![[128; 3]];
-    c.grid.sh_degree = 1;
-    c.optim.steps = 600;
-    c.optim.batch_rays = 2048;
-    c.optim.lr_delay_steps = 20;
-    c.checkpoint_every = 600;
+    let c = common::quick_blender_config(64, 128, 200, 600, 2048);
     let run = t.path().join("run");
     let m = refnpr::photo::run::run_training(&ds, c, &run, common::backend(), false, &refnpr::Quiet).unwrap();
     let ck = refnpr::field::checkpoint::load(&run, &common::device()).unwrap();

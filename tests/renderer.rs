@@ -176,8 +176,8 @@ fn autodiff_gradients_match_finite_differences() {
 #[test]
 fn depth_march_with_block_skipping_equals_the_renderer() {
     let grid = refnpr::field::grid::sphere_grid(64, &common::device());
-    let cam = refnpr::scene::camera::Camera::new(
-        refnpr::scene::camera::Intrinsics::from_fov_x(40, 40, 0.9),
+    let cam = Camera::new(
+        Intrinsics::from_fov_x(40, 40, 0.9),
         refnpr::scene::camera::look_at(Vec3::new(2.2, 1.0, 0.8), Vec3::ZERO, Vec3::Z),
     );
     let rays = cam.rays(None);

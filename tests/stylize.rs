@@ -15,9 +15,8 @@ use refnpr::field::composite::{self as render, BatchTensors};
 use refnpr::field::frozen::{FrozenSamples, render_colour, render_plain};
 use refnpr::field::grid::{GridGeometry, RadianceGrid};
 use refnpr::field::march::{self, MarchParams, Marcher};
-use refnpr::photo::config::TrainConfig;
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
-use refnpr::scene::data::{self, DatasetKind, procedural};
+use refnpr::scene::data::{self, procedural};
 use refnpr::stylize::config::StylizeConfig;
 use refnpr::stylize::field::{StyleField, chunked_gradient};
 use refnpr::stylize::run::run_stylize;
@@ -193,7 +192,7 @@ fn sh_tv_gradient_matches_finite_differences() {
     for &r in picks.iter().take(40) {
         for c in 0..3 {
             let i = r * 3 + c;
-            let fd = common::central_difference(&sh0, i, 1e-3, &tv) as f32;
+            let fd = common::central_difference(&sh0, i, 1e-3, tv) as f32;
             assert!(
                 (fd - grad[i]).abs() < 2e-3 * fd.abs().max(1e-3) + 2e-4,
                 "row {r} channel {c}: finite differences {fd}, gradient {}",
@@ -296,15 +295,7 @@ fn tiny_photo_run(dir: &std::path::Path, steps: usize, num_train: usize) -> std:
     let opts = procedural::SceneOptions { seed: 2, size: 64, num_train, num_val: 1, num_test: 4 };
     procedural::write_scene(&scene, &opts).unwrap();
     let ds = data::load(&scene, &Default::default()).unwrap();
-    let mut c = TrainConfig::for_kind(DatasetKind::Blender);
-    c.grid.initial_res = [48; 3];
-    c.grid.upsample_steps = vec![steps / 2];
-    c.grid.upsample_res = vec![[96; 3]];
-    c.grid.sh_degree = 1;
-    c.optim.steps = steps;
-    c.optim.batch_rays = 2048;
-    c.optim.lr_delay_steps = 20;
-    c.checkpoint_every = steps;
+    let c = common::quick_blender_config(48, 96, steps / 2, steps, 2048);
     let run = dir.join("photo");
     refnpr::photo::run::run_training(&ds, c, &run, common::backend(), false, &refnpr::Quiet).unwrap();
     run
@@ -535,11 +526,17 @@ fn arf_baseline_lowers_its_matching_loss() {
     let floor = white.iter().filter(|w| **w).count() as f32 / white.len() as f32
         * moved.iter().map(|m| (1.0 - m).powi(2)).sum::<f32>()
         / 3.0;
-    let refit_end = report.curve.iter().filter(|p| p.phase == "refit").map(|p| p.reference).collect::<Vec<_>>();
+    let refit_end = report
+        .curve
+        .iter()
+        .filter(|p| p.phase == refnpr::stylize::StepKind::Refit)
+        .map(|p| p.reference)
+        .collect::<Vec<_>>();
     let last = refit_end[refit_end.len().saturating_sub(5)..].iter().sum::<f32>() / 5.0;
     eprintln!("ARF refit: final MSE {last:.5}; recoloured background alone would cost {floor:.5} (white -> {moved:?})");
     assert!(floor > 1e-3 && last < 0.5 * floor, "refit MSE {last} vs recoloured-background floor {floor}");
-    let image: Vec<f32> = report.curve.iter().filter(|p| p.phase == "image").map(|p| p.feature).collect();
+    let image: Vec<f32> =
+        report.curve.iter().filter(|p| p.phase == refnpr::stylize::StepKind::Image).map(|p| p.feature).collect();
     assert_eq!(image.len(), 4 * 6, "ARF has no smooth update");
     let (first, last) = (image[..6].iter().sum::<f32>() / 6.0, image[18..].iter().sum::<f32>() / 6.0);
     eprintln!("ARF NNFM: first epoch {first:.4}, last epoch {last:.4}");

@@ -18,16 +18,7 @@ fn tiny_scene(dir: &std::path::Path) -> data::Dataset {
 }
 
 fn tiny_config(steps: usize) -> TrainConfig {
-    let mut c = TrainConfig::for_kind(DatasetKind::Blender);
-    c.grid.initial_res = [24; 3];
-    c.grid.upsample_steps = vec![steps / 2];
-    c.grid.upsample_res = vec![[40; 3]];
-    c.grid.sh_degree = 1;
-    c.optim.steps = steps;
-    c.optim.batch_rays = 1024;
-    c.optim.lr_delay_steps = 20;
-    c.checkpoint_every = steps;
-    c
+    common::quick_blender_config(24, 40, steps / 2, steps, 1024)
 }
 
 /// The tiny scene reaches 22 dB on its held-out views in 300 steps

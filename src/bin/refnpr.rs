@@ -30,6 +30,20 @@ struct Cli {
     command: Command,
 }
 
+/// The inputs of the R³ and stylization commands.
+#[derive(clap::Args)]
+struct PhotoAndCase {
+    /// Photoreal run folder (or checkpoint file).
+    #[arg(long)]
+    photo: PathBuf,
+    /// Reference case folder (reference.toml or the authors' data_config.json).
+    #[arg(long)]
+    reference: PathBuf,
+    /// Dataset folder (default: the one the photoreal run was trained on).
+    #[arg(long)]
+    data: Option<PathBuf>,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// The demo: writes the procedural scene, fits it, renders an orbit (OUT/orbit/path.gif).
@@ -99,16 +113,10 @@ enum Command {
     },
     /// R³: registers the stylized reference colours onto every training ray.
     Register {
-        /// Photoreal run folder (or checkpoint file).
-        #[arg(long)]
-        photo: PathBuf,
-        /// Reference case folder (reference.toml or the authors' data_config.json).
-        #[arg(long)]
-        reference: PathBuf,
+        #[command(flatten)]
+        inputs: PhotoAndCase,
         #[arg(long)]
         out: PathBuf,
-        #[arg(long)]
-        data: Option<PathBuf>,
         #[command(flatten)]
         params: RegisterParams,
         /// Overlay PNGs for the first N training views.
@@ -117,12 +125,8 @@ enum Command {
     },
     /// Stylizes a photoreal run after a reference case (Ref-NPR), or after a style image (ARF).
     Stylize {
-        /// Photoreal run folder (or checkpoint file).
-        #[arg(long)]
-        photo: PathBuf,
-        /// Reference case folder (reference.toml or the authors' data_config.json).
-        #[arg(long)]
-        reference: PathBuf,
+        #[command(flatten)]
+        inputs: PhotoAndCase,
         /// Output run folder: checkpoint.bin (renders like any run), stylize.json, test/ renders.
         #[arg(long)]
         out: PathBuf,
@@ -139,9 +143,6 @@ enum Command {
         epochs: Option<usize>,
         #[arg(long, value_enum)]
         backend: Option<BackendKind>,
-        /// Dataset folder (default: the one the photoreal run was trained on).
-        #[arg(long)]
-        data: Option<PathBuf>,
         /// Skip rendering the test views of the result.
         #[arg(long)]
         no_render: bool,
@@ -259,22 +260,7 @@ fn run() -> Result<()> {
             run_bench_vgg(backends, &sizes, warmup, repeats, no_onnxruntime, json)
         }
         Command::Reference { ckpt, view, out, data } => run_reference(&ckpt, &view, &out, data),
-        Command::Register { photo, reference, out, data, params, overlays } => {
-            let (ck, dataset) = load_run(&photo, data)?;
-            let case = ReferenceCase::load(&reference)?;
-            let r = registration::run_register(&ck, &dataset, &case, &params, &out, overlays, &progress)?;
-            println!(
-                "registered {} pixels ({:.1}% of surface pixels) over {} views; depth {:.2}s, dictionary {:.3}s, registration {:.3}s",
-                r.registered_pixels,
-                100.0 * r.fraction_overall,
-                r.fraction_per_view.len(),
-                r.depth_seconds,
-                r.dictionary_seconds,
-                r.register_seconds
-            );
-            println!("wrote {}/registration.bin, register.json, overlays/", out.display());
-            Ok(())
-        }
+        Command::Register { inputs, out, params, overlays } => run_register(inputs, &out, &params, overlays, &progress),
         Command::Stylize { .. } => {
             let stylize = matches.subcommand_matches("stylize").expect("the stylize subcommand was parsed");
             run_stylize_command(cli.command, stylize, &progress)
@@ -456,6 +442,29 @@ fn run_bench_vgg(
     Ok(())
 }
 
+fn run_register(
+    inputs: PhotoAndCase,
+    out: &Path,
+    params: &RegisterParams,
+    overlays: usize,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let (ck, dataset) = load_run(&inputs.photo, inputs.data)?;
+    let case = ReferenceCase::load(&inputs.reference)?;
+    let r = registration::run_register(&ck, &dataset, &case, params, out, overlays, progress)?;
+    println!(
+        "registered {} pixels ({:.1}% of surface pixels) over {} views; depth {:.2}s, dictionary {:.3}s, registration {:.3}s",
+        r.registered_pixels,
+        100.0 * r.fraction_overall,
+        r.fraction_per_view.len(),
+        r.depth_seconds,
+        r.dictionary_seconds,
+        r.register_seconds
+    );
+    println!("wrote {}/registration.bin, register.json, overlays/", out.display());
+    Ok(())
+}
+
 fn run_reference(ckpt: &Path, view: &str, out: &Path, data: Option<PathBuf>) -> Result<()> {
     let (ck, dataset) = load_run(ckpt, data)?;
     let spec: ViewSpec = view.parse()?;
@@ -468,20 +477,8 @@ fn run_reference(ckpt: &Path, view: &str, out: &Path, data: Option<PathBuf>) -> 
 /// `refnpr stylize`: the config file (or the defaults), then the flags the
 /// user gave (`--epochs`, and any R³ flag over the file's `[register]`).
 fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Progress) -> Result<()> {
-    let Command::Stylize {
-        photo,
-        reference,
-        out,
-        config,
-        method,
-        style,
-        epochs,
-        backend,
-        data,
-        no_render,
-        registration,
-        register,
-    } = command
+    let Command::Stylize { inputs, out, config, method, style, epochs, backend, no_render, registration, register } =
+        command
     else {
         unreachable!("called for the stylize subcommand")
     };
@@ -496,18 +493,9 @@ fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Pr
         config::overlay(&config.register, given_flags(&register, matches)?, "the command line", "R³ flags")?;
     config.validate()?;
     let render_test = !no_render;
-    let job = StylizeJob {
-        photo,
-        case: reference,
-        out,
-        config,
-        method,
-        backend: backend_or_env(backend)?,
-        style,
-        data,
-        registration,
-        render_test,
-    };
+    let backend = backend_or_env(backend)?;
+    let PhotoAndCase { photo, reference: case, data } = inputs;
+    let job = StylizeJob { photo, case, out, config, method, backend, style, data, registration, render_test };
     let r = run_stylize(&job, progress)?;
     let phases: Vec<String> = r.seconds.iter().map(|(k, v)| format!("{k} {v:.1}s")).collect();
     println!("stylized ({}) in {:.1} s: {}", r.method, r.total_seconds, phases.join(", "));

@@ -33,7 +33,7 @@ impl BatchTensors {
     /// local row of a training step's parameter subset).
     pub fn new(b: &SampleBatch, remap: Option<&dyn Fn(i32) -> i32>, device: &Device) -> Self {
         let s = b.num_samples();
-        let nb = if s > 0 { b.basis.len() / s } else { 1 };
+        let nb = b.basis.len().checked_div(s).unwrap_or(1);
         let k = b.max_samples_per_ray().max(1);
         let mut pad = vec![s as i32; b.num_rays * k];
         for r in 0..b.num_rays {

@@ -74,7 +74,7 @@ impl FrozenSamples {
 
     /// Appends the `num_rays` rays of `batch`, keeping the samples whose
     /// compositing weight exceeds `min_weight`.
-    fn push_weighted(&mut self, grid: &RadianceGrid, batch: &render::SampleBatch, num_rays: usize, min_weight: f32) {
+    fn push_weighted(&mut self, grid: &RadianceGrid, batch: &SampleBatch, num_rays: usize, min_weight: f32) {
         for r in 0..num_rays {
             let (lo, hi) = (batch.ray_offsets[r] as usize, batch.ray_offsets[r + 1] as usize);
             let mut optical = 0.0f32;

@@ -398,7 +398,7 @@ impl RadianceGrid {
 /// A grid holding a textured solid sphere of radius 0.6 (density 40) in
 /// [-1,1]^3 at resolution `res`, SH degree 2; only the sphere and a
 /// one-voxel shell own rows, as after pruning.
-pub fn sphere_grid(res: usize, device: &burn::tensor::Device) -> RadianceGrid {
+pub fn sphere_grid(res: usize, device: &Device) -> RadianceGrid {
     let geo = GridGeometry::new([res; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
     let nb = sh::num_basis(2);
     let shell = 1.5 * geo.voxel_size().x;

@@ -143,7 +143,7 @@ impl BlockOccupancy {
         // The blocks whose closed range [b*B, b*B+B] holds lattice index i.
         let owners = |i: usize, n: usize| {
             let b = (i / BLOCK).min(n - 1);
-            let below = (i % BLOCK == 0 && i > 0).then(|| i / BLOCK - 1);
+            let below = (i.is_multiple_of(BLOCK) && i > 0).then(|| i / BLOCK - 1);
             [Some(b), below]
         };
         for &flat in &grid.coords {

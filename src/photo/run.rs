@@ -45,7 +45,9 @@ pub fn run_training(
     progress: &dyn Progress,
 ) -> Result<TrainMetrics> {
     files::create_dir(out)?;
-    let mut trainer = start(dataset, config, out, backend, resume, progress)?;
+    let checkpoint = out.join(checkpoint::CHECKPOINT_FILE);
+    let resume_from = (resume && checkpoint.exists()).then_some(checkpoint.as_path());
+    let mut trainer = start(dataset, config, resume_from, backend, progress)?;
     files::write_toml(&out.join("config.toml"), &trainer.config)?;
     let started = Instant::now();
     fit(&mut trainer, dataset, out, progress)?;
@@ -72,23 +74,22 @@ pub fn run_training(
     Ok(metrics)
 }
 
-/// A fresh trainer, or the one `out`'s checkpoint holds when resuming.
+/// A fresh trainer, or the one a checkpoint holds.
 fn start(
     dataset: &Dataset,
     config: TrainConfig,
-    out: &Path,
+    resume_from: Option<&Path>,
     backend: BackendKind,
-    resume: bool,
     progress: &dyn Progress,
 ) -> Result<Trainer> {
     let device = backend.device();
-    let ckpt = out.join(checkpoint::CHECKPOINT_FILE);
-    if resume && ckpt.exists() {
-        let t = Trainer::resume(dataset, &ckpt, &device)?;
-        progress.info(format!("resuming {} at step {}", ckpt.display(), t.step));
-        Ok(t)
-    } else {
-        Trainer::new(dataset, config, &device)
+    match resume_from {
+        Some(ckpt) => {
+            let t = Trainer::resume(dataset, ckpt, &device)?;
+            progress.info(format!("resuming {} at step {}", ckpt.display(), t.step));
+            Ok(t)
+        }
+        None => Trainer::new(dataset, config, &device),
     }
 }
 
@@ -113,7 +114,7 @@ fn fit(trainer: &mut Trainer, dataset: &Dataset, out: &Path, progress: &dyn Prog
             trainer.grid.num_rows()
         );
         progress.event(Event::Step { phase: Phase::Fit, done: trainer.step, total, message });
-        if trainer.step % trainer.config.checkpoint_every == 0 && trainer.step < total {
+        if trainer.step.is_multiple_of(trainer.config.checkpoint_every) && trainer.step < total {
             trainer.train_seconds += segment.elapsed().as_secs_f64();
             segment = Instant::now();
             rays_done = 0;

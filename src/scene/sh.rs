@@ -42,6 +42,7 @@ mod tests {
     use super::*;
 
     #[test]
+    #[allow(clippy::needless_range_loop)] // a Gram matrix reads best indexed
     fn basis_is_orthonormal_on_the_sphere() {
         // Monte-Carlo check of <Y_i, Y_j> = delta_ij * (1 / 4pi) * 4pi.
         let n = 20000;

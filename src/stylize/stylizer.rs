@@ -262,7 +262,7 @@ impl<'a> Stylizer<'a> {
             image_tv: parts.image_tv,
         })
     }
-    fn view_samples(&self, v: usize) -> std::borrow::Cow<'_, FrozenSamples> {
+    fn view_samples(&self, v: usize) -> Cow<'_, FrozenSamples> {
         match &self.view_samples[v] {
             Some(s) => Cow::Borrowed(s),
             None => Cow::Owned(self.march_camera(&self.dataset.train[v].camera)),
@@ -368,13 +368,13 @@ impl<'a> Stylizer<'a> {
         (grad, value.get())
     }
 
-    pub fn with_tv(&self, grad: Tensor<2>, rng: &mut ChaCha8Rng) -> Tensor<2> {
+    fn with_tv(&self, grad: Tensor<2>, rng: &mut ChaCha8Rng) -> Tensor<2> {
         self.field.add_tv_gradient(grad, self.cfg.loss.tv_sh, self.cfg.loss.tv_fraction, rng)
     }
 
     /// Caches sample lists up to the configured memory: first the
     /// registered pixels (a batch of them is rendered every step), then the views.
-    pub fn cache_samples(&mut self) {
+    fn cache_samples(&mut self) {
         // Each march gives up as soon as it would overrun what is left of the
         // budget, so memory never holds more than the budget plus one chunk.
         let budget = self.cfg.sample_cache_mb * 1024 * 1024;
@@ -393,7 +393,7 @@ impl<'a> Stylizer<'a> {
 
     /// The pseudo-ray loss's gradient (λ_r times the mean squared error of
     /// a batch of reference pixels plus that of a batch of registered pixels).
-    pub fn reference_gradient(&self, rng: &mut ChaCha8Rng) -> (Option<Tensor<2>>, f32) {
+    fn reference_gradient(&self, rng: &mut ChaCha8Rng) -> (Option<Tensor<2>>, f32) {
         let l = &self.cfg.loss;
         if !self.cfg.ablation.use_reference_loss || l.reference <= 0.0 {
             return (None, 0.0);
@@ -447,7 +447,7 @@ impl<'a> Stylizer<'a> {
 
     /// Deferred back-propagation of the image losses of view `v`: the
     /// gradient with respect to the SH rows, and the loss values.
-    pub fn image_gradient(
+    fn image_gradient(
         &self,
         v: usize,
         guide: &ViewGuide,

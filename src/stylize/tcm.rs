@@ -11,9 +11,10 @@ use anyhow::Result;
 use burn::tensor::{Device, Int, Tensor};
 
 use crate::stylize::losses::patch_means;
+use crate::util::image::Image;
 use crate::util::tensor::{floats, indices, to_vec};
 use crate::vgg::features::{block_descriptors, block_matrix, nearest_by_dot};
-use crate::vgg::{FeatureMaps, Vgg16, VggLayer, image_tensor};
+use crate::vgg::{FeatureMaps, Vgg16, VggLayer};
 
 pub const RELU3: [VggLayer; 3] = [VggLayer::Relu3_1, VggLayer::Relu3_2, VggLayer::Relu3_3];
 pub const RELU4: [VggLayer; 3] = [VggLayer::Relu4_1, VggLayer::Relu4_2, VggLayer::Relu4_3];
@@ -22,20 +23,6 @@ pub const RELU5: [VggLayer; 3] = [VggLayer::Relu5_1, VggLayer::Relu5_2, VggLayer
 pub const FEATURE_BLOCKS: [&[VggLayer]; 2] = [&RELU3, &RELU4];
 /// Pixels per relu5 position: the colour loss's patch size.
 pub const COLOUR_PATCH: usize = 16;
-
-/// An RGB image (interleaved, row-major, [0,1]) and its size.
-#[derive(Debug, Clone)]
-pub struct Image {
-    pub width: usize,
-    pub height: usize,
-    pub rgb: Vec<f32>,
-}
-
-impl Image {
-    pub fn tensor(&self, device: &Device) -> Tensor<4> {
-        image_tensor(&self.rgb, self.width, self.height, device)
-    }
-}
 
 /// The grid of a block: that of its first layer.
 pub fn block_size(block: &[VggLayer], height: usize, width: usize) -> [usize; 2] {

@@ -81,9 +81,7 @@ pub fn depth_to_rgb(depth: &[Option<f32>]) -> Vec<f32> {
                 let f = x * (ramp.len() - 1) as f32;
                 let i = (f.floor() as usize).min(ramp.len() - 2);
                 let t = f - i as f32;
-                for c in 0..3 {
-                    out.push(ramp[i][c] * (1.0 - t) + ramp[i + 1][c] * t);
-                }
+                out.extend(ramp[i].iter().zip(&ramp[i + 1]).map(|(a, b)| a * (1.0 - t) + b * t));
             }
         }
     }

@@ -3,6 +3,8 @@
 
 use burn::tensor::Device;
 use refnpr::BackendKind;
+use refnpr::photo::config::TrainConfig;
+use refnpr::scene::data::DatasetKind;
 use std::path::PathBuf;
 
 /// The backend under test: `REFNPR_BACKEND` (flex when unset).
@@ -79,4 +81,26 @@ pub fn perturbed(x: &[f32], i: usize, h: f32) -> (Vec<f32>, Vec<f32>) {
 pub fn central_difference(x: &[f32], i: usize, h: f32, loss: impl Fn(&[f32]) -> f64) -> f64 {
     let (plus, minus) = perturbed(x, i, h);
     (loss(&plus) - loss(&minus)) / (2.0 * h as f64)
+}
+
+/// The Blender defaults cut down for a quick fit in the tests: `coarse`³
+/// voxels upsampled to `fine`³ at step `upsample_at`, SH degree 1, `steps`
+/// steps of `batch_rays` rays, a 20-step learning-rate ramp, one checkpoint.
+pub fn quick_blender_config(
+    coarse: usize,
+    fine: usize,
+    upsample_at: usize,
+    steps: usize,
+    batch_rays: usize,
+) -> TrainConfig {
+    let mut c = TrainConfig::for_kind(DatasetKind::Blender);
+    c.grid.initial_res = [coarse; 3];
+    c.grid.upsample_steps = vec![upsample_at];
+    c.grid.upsample_res = vec![[fine; 3]];
+    c.grid.sh_degree = 1;
+    c.optim.steps = steps;
+    c.optim.batch_rays = batch_rays;
+    c.optim.lr_delay_steps = 20;
+    c.checkpoint_every = steps;
+    c
 }

@@ -23,7 +23,10 @@ struct Frame {
     transform_matrix: [[f32; 4]; 4],
 }
 
-pub(crate) fn load_split(dir: &Path, split: &str, opts: &LoadOptions) -> Result<(Vec<View>, Option<[[f32; 3]; 2]>)> {
+/// A split's views, and the scene box its file gives (`bbox`), if any.
+type SplitViews = (Vec<View>, Option<[[f32; 3]; 2]>);
+
+pub(crate) fn load_split(dir: &Path, split: &str, opts: &LoadOptions) -> Result<SplitViews> {
     let json_path = dir.join(format!("transforms_{split}.json"));
     if !json_path.exists() {
         if split == "val" {

@@ -104,11 +104,21 @@ fn ndc_box(views: &[View], ndc: &NdcParams, source: &Path) -> (Vec3, Vec3, Optio
     (lo.max(-cap).with_z(-1.0), hi.min(cap).with_z(1.0), warning)
 }
 
+/// What `poses_bounds.npy` says besides the images.
+struct LlffPoses {
+    /// Camera-to-world, rescaled and centred.
+    poses: Vec<Mat4>,
+    /// (height, width, focal) of the full-size images.
+    hwf: (f32, f32, f32),
+    /// The scene's depth bounds, rescaled.
+    near_far: (f32, f32),
+}
+
 /// The poses of `poses_bounds.npy` (`n` rows of a 3x5 matrix, then near
 /// and far), rescaled so the nearest bound is at 4/3 and centred on the
 /// average pose; also (height, width, focal) of the full-size images and
 /// the rescaled (near, far) of the scene.
-fn read_poses(data: &[f64], n: usize, npy_path: &Path) -> Result<(Vec<Mat4>, (f32, f32, f32), (f32, f32))> {
+fn read_poses(data: &[f64], n: usize, npy_path: &Path) -> Result<LlffPoses> {
     let mut poses = Vec::with_capacity(n);
     let mut bounds = Vec::with_capacity(n);
     let mut hwf = (0.0f32, 0.0f32, 0.0f32);
@@ -127,7 +137,7 @@ fn read_poses(data: &[f64], n: usize, npy_path: &Path) -> Result<(Vec<Mat4>, (f3
     }
     let min_near = bounds.iter().map(|b| b.0).fold(f32::INFINITY, f32::min);
     let max_far = bounds.iter().map(|b| b.1).fold(0.0f32, f32::max);
-    if !(min_near > 0.0) {
+    if min_near.is_nan() || min_near <= 0.0 {
         bail!("{}: near bounds must be positive (found {min_near})", npy_path.display());
     }
     let scale = 1.0 / (min_near * 0.75);
@@ -140,7 +150,7 @@ fn read_poses(data: &[f64], n: usize, npy_path: &Path) -> Result<(Vec<Mat4>, (f3
     for (i, p) in poses.iter().enumerate() {
         check_pose(p, npy_path, &format!("image {i}"))?;
     }
-    Ok((poses, hwf, (min_near * scale, max_far * scale)))
+    Ok(LlffPoses { poses, hwf, near_far: (min_near * scale, max_far * scale) })
 }
 
 /// The views: each image (in parallel) with its pose and a centred pinhole,
@@ -182,7 +192,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     if files.len() != n {
         bail!("{}: {} poses but {} images in {}", npy_path.display(), n, files.len(), folder.display());
     }
-    let (poses, hwf, (near, far)) = read_poses(&arr.data, n, &npy_path)?;
+    let LlffPoses { poses, hwf, near_far: (near, far) } = read_poses(&arr.data, n, &npy_path)?;
     let views = read_views(&files, &poses, (hwf.1, hwf.2), opts.background, resize)?;
     let (full_h, full_w) = (hwf.0, hwf.1);
     let intr = views[0].camera.intrinsics;

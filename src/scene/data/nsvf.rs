@@ -33,6 +33,9 @@ fn read_intrinsics(path: &Path) -> Result<(f32, f32, f32, f32)> {
     }
 }
 
+/// An image as loaded: name, camera-to-world, width, height, RGB.
+type LoadedImage = (String, Mat4, u32, u32, Vec<f32>);
+
 /// (name, image, pose file) of every image in `rgb/`, sorted by name; an
 /// image without its `pose/NAME.txt` is an error.
 fn list_entries(dir: &Path, rgb_dir: &Path) -> Result<Vec<(String, PathBuf, PathBuf)>> {
@@ -87,7 +90,7 @@ fn scene_box(dir: &Path, cameras: &[Vec3]) -> Result<(Vec3, f32)> {
         let mean_dist = cameras.iter().map(|c| (*c - centre).length()).sum::<f32>() / cameras.len() as f32;
         (centre, 0.5 * mean_dist)
     };
-    if !(half > 0.0) {
+    if half.is_nan() || half <= 0.0 {
         bail!("{}: cannot find a scene box (degenerate bounds)", dir.display());
     }
     Ok((centre, half))
@@ -101,7 +104,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     let (fx, fy, cx, cy) = read_intrinsics(&k_path)?;
     let rgb_dir = dir.join("rgb");
     let entries = list_entries(dir, &rgb_dir)?;
-    let loaded: Vec<Result<(String, Mat4, u32, u32, Vec<f32>)>> = entries
+    let loaded: Vec<Result<LoadedImage>> = entries
         .par_iter()
         .map(|(stem, img, pose)| {
             let c2w = read_pose(pose, stem)?;
