@@ -333,19 +333,27 @@ impl<'a> Stylizer<'a> {
         progress.event(Event::Start { phase: Phase::Refit, done: 0, total: steps });
         self.field.reset_optimiser();
         for step in 0..steps {
-            let mut rng = step_rng(self.cfg.seed, Stream::Refit, step);
-            let picks: Vec<usize> = (0..s.ray_batch).map(|_| rng.random_range(0..rays.len())).collect();
-            let batch_rays: Vec<Ray> = picks.iter().map(|&i| rays[i]).collect();
-            let target = floats(picks.iter().flat_map(|&i| colours[i]).collect(), [picks.len(), 3], &self.device);
-            let samples = self.march_rays(&batch_rays);
-            let (grad, mse) = self.mse_gradient(&samples, target, 1.0);
-            let grad = self.with_tv(grad, &mut rng);
-            self.field.rmsprop(grad, s.lr_refit, s.rmsprop_beta, s.eps);
+            let mse = self.refit_step(step, &rays, &colours);
             let message = format!("mse {mse:.5} psnr {:.2}", psnr_from_mse(mse));
             progress.event(Event::Step { phase: Phase::Refit, done: step + 1, total: steps, message });
             self.curve.push(CurvePoint::refit(step, mse));
         }
         Ok(())
+    }
+
+    /// One refit step: a seeded batch of photo rays, their MSE gradient plus
+    /// SH TV, one RMSprop step. Returns the batch's MSE.
+    fn refit_step(&mut self, step: usize, rays: &[Ray], colours: &[[f32; 3]]) -> f32 {
+        let s = &self.cfg.schedule;
+        let mut rng = step_rng(self.cfg.seed, Stream::Refit, step);
+        let picks: Vec<usize> = (0..s.ray_batch).map(|_| rng.random_range(0..rays.len())).collect();
+        let batch_rays: Vec<Ray> = picks.iter().map(|&i| rays[i]).collect();
+        let target = floats(picks.iter().flat_map(|&i| colours[i]).collect(), [picks.len(), 3], &self.device);
+        let samples = self.march_rays(&batch_rays);
+        let (grad, mse) = self.mse_gradient(&samples, target, 1.0);
+        let grad = self.with_tv(grad, &mut rng);
+        self.field.rmsprop(grad, s.lr_refit, s.rmsprop_beta, s.eps);
+        mse
     }
 
     /// `weight` x the mean squared error of the rays' colours to `target`
