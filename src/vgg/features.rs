@@ -6,6 +6,7 @@ use burn::tensor::Tensor;
 use burn::tensor::module::interpolate;
 use burn::tensor::ops::{InterpolateMode, InterpolateOptions};
 
+use crate::util::chunk_ranges;
 use crate::util::tensor::to_vec;
 use crate::vgg::{FeatureMaps, VggLayer};
 
@@ -58,10 +59,7 @@ pub fn nearest_by_dot(query: Tensor<2>, keys: Tensor<2>, chunk: usize) -> (Vec<u
     let keys_t = keys.transpose();
     let mut index = Vec::with_capacity(nq);
     let mut best = Vec::with_capacity(nq);
-    let chunk = chunk.max(1);
-    let mut start = 0;
-    while start < nq {
-        let len = chunk.min(nq - start);
+    for (start, len) in chunk_ranges(nq, chunk) {
         let sims = query.clone().narrow(0, start, len).matmul(keys_t.clone());
         let (value, arg) = sims.max_dim_with_indices(1);
         best.extend(to_vec(value));
@@ -73,7 +71,6 @@ pub fn nearest_by_dot(query: Tensor<2>, keys: Tensor<2>, chunk: usize) -> (Vec<u
                 .into_iter()
                 .map(|i| i as usize),
         );
-        start += len;
     }
     (index, best)
 }

@@ -8,7 +8,7 @@
 //! the view: the stylized renders are an exact target for stylization tests.
 
 use crate::scene::camera::{Camera, Intrinsics, look_at};
-use crate::util::npy;
+use crate::util::{files, npy};
 use anyhow::{Context, Result};
 use glam::{Vec3, Vec4};
 use rand::{Rng, SeedableRng};
@@ -348,7 +348,7 @@ pub fn write_scene(out: &Path, opts: &SceneOptions) -> Result<()> {
     for (root, stylized) in [(out.to_path_buf(), false), (out.join("stylized"), true)] {
         for split in ["train", "val", "test"] {
             let dir = root.join(split);
-            std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+            files::create_dir(&dir)?;
             let cams = cameras(opts, split);
             let mut frames = Vec::new();
             for (i, cam) in cams.iter().enumerate() {
@@ -370,9 +370,7 @@ pub fn write_scene(out: &Path, opts: &SceneOptions) -> Result<()> {
                 "bbox": SCENE_BBOX,
                 "frames": frames,
             });
-            let path = root.join(format!("transforms_{split}.json"));
-            std::fs::write(&path, serde_json::to_string_pretty(&doc)?)
-                .with_context(|| format!("cannot write {}", path.display()))?;
+            files::write_json(&root.join(format!("transforms_{split}.json")), &doc)?;
         }
     }
     Ok(())
