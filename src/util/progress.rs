@@ -156,25 +156,6 @@ impl Progress for Console {
     }
 }
 
-/// Collects every event (tests, and callers that report afterwards).
-#[derive(Default)]
-pub struct Recorder {
-    pub events: Mutex<Vec<Event>>,
-}
-
-impl Recorder {
-    pub fn warnings(&self) -> Vec<String> {
-        let events = self.events.lock().unwrap_or_else(|e| e.into_inner());
-        events.iter().filter_map(|e| if let Event::Warning(w) = e { Some(w.clone()) } else { None }).collect()
-    }
-}
-
-impl Progress for Recorder {
-    fn event(&self, event: Event) {
-        self.events.lock().unwrap_or_else(|e| e.into_inner()).push(event);
-    }
-}
-
 /// Warnings of one run: each is reported to the sink as it happens and kept
 /// for the run's report file.
 pub struct WarningLog<'a> {
@@ -204,5 +185,32 @@ impl<'a> WarningLog<'a> {
 
     pub fn into_vec(self) -> Vec<String> {
         self.list
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Keeps the events it is given.
+    #[derive(Default)]
+    struct Collect(Mutex<Vec<Event>>);
+
+    impl Progress for Collect {
+        fn event(&self, event: Event) {
+            self.0.lock().unwrap().push(event);
+        }
+    }
+
+    #[test]
+    fn a_warning_log_reports_each_warning_once_and_keeps_them_all() {
+        let sink = Collect::default();
+        let mut log = WarningLog::new(&sink);
+        log.push("first".into());
+        log.extend_reported(["reported elsewhere".to_string()]);
+        log.push("second".into());
+        assert_eq!(log.into_vec(), ["first", "reported elsewhere", "second"]);
+        let events = sink.0.into_inner().unwrap();
+        assert_eq!(events, [Event::Warning("first".into()), Event::Warning("second".into())]);
     }
 }
