@@ -17,8 +17,6 @@ pub enum Phase {
     Evaluate,
     /// Rendering the frames of a camera path.
     Render,
-    /// R³: depth of every view and registration.
-    Register,
     /// The stylization's colour refit (steps).
     Refit,
     /// Content renders, VGG16 features, TCM matches of every view.
@@ -27,8 +25,6 @@ pub enum Phase {
     ImageEpochs,
     /// Restylizations of `refnpr eval --robustness`.
     Robustness,
-    /// The demo's stages.
-    Demo,
 }
 
 impl std::fmt::Display for Phase {
@@ -37,12 +33,10 @@ impl std::fmt::Display for Phase {
             Phase::Fit => "fit",
             Phase::Evaluate => "evaluate",
             Phase::Render => "render",
-            Phase::Register => "register",
             Phase::Refit => "refit",
             Phase::Guides => "content features",
             Phase::ImageEpochs => "image epochs",
             Phase::Robustness => "robustness",
-            Phase::Demo => "demo",
         })
     }
 }
@@ -88,7 +82,8 @@ const PLAIN_LINES_PER_PHASE: usize = 20;
 /// Bars on a terminal, plain lines on stderr otherwise.
 pub struct Console {
     terminal: bool,
-    bar: Mutex<Option<ProgressBar>>,
+    /// The phase whose bar is shown, and the bar.
+    bar: Mutex<Option<(Phase, ProgressBar)>>,
 }
 
 impl Default for Console {
@@ -99,7 +94,7 @@ impl Default for Console {
 
 #[allow(clippy::print_stderr)] // the one sink that prints
 impl Console {
-    fn with_bar(&self, f: impl FnOnce(&mut Option<ProgressBar>)) {
+    fn with_bar(&self, f: impl FnOnce(&mut Option<(Phase, ProgressBar)>)) {
         let mut slot = self.bar.lock().unwrap_or_else(|e| e.into_inner());
         f(&mut slot);
     }
@@ -107,8 +102,32 @@ impl Console {
     /// Prints a line above the bar (or plainly).
     fn line(&self, text: String) {
         self.with_bar(|bar| match bar {
-            Some(b) => b.println(text),
+            Some((_, b)) => b.println(text),
             None => eprintln!("{text}"),
+        });
+    }
+
+    /// Shows `phase`'s bar at `done` of `total`: a phase's first event, or
+    /// one that comes back after another phase took the line (the smooth
+    /// update's guides inside the image epochs), gets a fresh bar.
+    fn show(&self, phase: Phase, done: usize, total: usize, message: Option<String>) {
+        self.with_bar(|bar| {
+            if bar.as_ref().is_none_or(|(p, _)| *p != phase) {
+                let b = ProgressBar::new(total as u64);
+                b.set_style(
+                    ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} {msg}")
+                        .expect("valid template")
+                        .progress_chars("=> "),
+                );
+                if let Some((_, old)) = bar.replace((phase, b)) {
+                    old.finish_and_clear();
+                }
+            }
+            let (_, b) = bar.as_ref().expect("a bar was just set");
+            b.set_position(done as u64);
+            if let Some(m) = message {
+                b.set_message(m);
+            }
         });
     }
 }
@@ -117,34 +136,19 @@ impl Console {
 impl Progress for Console {
     fn event(&self, event: Event) {
         match event {
-            Event::Start { done, total, .. } if self.terminal => self.with_bar(|bar| {
-                let b = ProgressBar::new(total as u64);
-                b.set_style(
-                    ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} {msg}")
-                        .expect("valid template")
-                        .progress_chars("=> "),
-                );
-                b.set_position(done as u64);
-                if let Some(old) = bar.replace(b) {
-                    old.finish_and_clear();
-                }
-            }),
+            Event::Start { phase, done, total } if self.terminal => self.show(phase, done, total, None),
             Event::Start { .. } => {}
+            Event::Step { phase, done, total, message } if self.terminal => {
+                self.show(phase, done, total, Some(message))
+            }
             Event::Step { phase, done, total, message } => {
-                if self.terminal {
-                    self.with_bar(|bar| {
-                        if let Some(b) = bar {
-                            b.set_position(done as u64);
-                            b.set_message(message);
-                        }
-                    });
-                } else if done == total || done % (total / PLAIN_LINES_PER_PHASE).max(1) == 0 {
+                if done == total || done % (total / PLAIN_LINES_PER_PHASE).max(1) == 0 {
                     eprintln!("{phase} {done}/{total} {message}");
                 }
             }
             Event::PhaseDone { phase, seconds } => {
                 self.with_bar(|bar| {
-                    if let Some(b) = bar.take() {
+                    if let Some((_, b)) = bar.take() {
                         b.finish_and_clear();
                     }
                 });
