@@ -15,10 +15,11 @@ use refnpr::field::composite::{self as render, BatchTensors};
 use refnpr::field::frozen::{FrozenSamples, render_colour, render_plain};
 use refnpr::field::grid::{GridGeometry, RadianceGrid};
 use refnpr::field::march::{self, MarchParams, Marcher};
+use refnpr::field::optim::{RmsStart, Rmsprop};
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
 use refnpr::scene::data::{self, procedural};
-use refnpr::stylize::config::StylizeConfig;
-use refnpr::stylize::field::{StyleField, chunked_gradient};
+use refnpr::stylize::config::{ColourNorm, StylizeConfig};
+use refnpr::stylize::field::{StepRows, StyleField, chunked_gradient};
 use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::tcm::Template;
 use refnpr::stylize::{Method, StylizeJob, losses};
@@ -59,7 +60,13 @@ fn losses_match_hand_computed_values() {
     let patches = floats(vec![0.5, 0.5, 0.5, 1.0, 0.0, 0.0], [2, 3], &d);
     let targets = floats(vec![0.5, 0.5, 1.0, 0.0, 0.0, 0.0], [2, 3], &d);
     let mask = floats(vec![1.0, 0.0], [2, 1], &d);
-    assert!(close(value(losses::colour_loss(patches, targets, mask)), 0.25, tol));
+    let colour = |norm| value(losses::colour_loss(patches.clone(), targets.clone(), mask.clone(), norm));
+    assert!(close(colour(ColourNorm::Matched), 0.25, tol));
+    // The released code's normalisation: over 3 channels and both positions.
+    assert!(close(colour(ColourNorm::AllPositions), 0.25 / 6.0, tol));
+    // Near-white patches (channel mean above the threshold) are masked out.
+    let patches = floats(vec![0.995, 0.99, 1.0, 1.0, 1.0, 0.5], [2, 3], &d);
+    assert_eq!(to_vec(losses::not_white(patches, 0.99)), vec![0.0, 1.0]);
     // Image TV: one bright pixel in a 2x2 three-channel image: 1/6 across + 1/6 down.
     let mut img = vec![0.0f32; 12];
     img[0] = 1.0;
@@ -160,12 +167,24 @@ fn sh_tv_gradient_matches_finite_differences() {
     let n = grid.num_rows();
     let field = StyleField::new(grid);
     let (weight, fraction, seed) = (0.5f32, 0.3f32, 11u64);
-    let grad = to_vec(field.add_tv_gradient(
-        Tensor::zeros([n, 3], &field.grid.device()),
-        weight,
-        fraction,
-        &mut ChaCha8Rng::seed_from_u64(seed),
-    ));
+    let lists = field.tv_rows(weight, fraction, &mut ChaCha8Rng::seed_from_u64(seed));
+    let dense = StepRows::dense(n);
+    let grad = to_vec(field.add_tv_gradient(dense.zeros(&field.grid.device()), weight, &lists, &dense));
+    // Sparse: the same gradient, in a buffer with one row per touched row.
+    let mut sparse = StepRows::sparse(n);
+    lists.iter().for_each(|l| sparse.add(l));
+    let local = to_vec(field.add_tv_gradient(sparse.zeros(&field.grid.device()), weight, &lists, &sparse));
+    assert!(sparse.len() < n);
+    for r in 0..n {
+        for c in 0..3 {
+            let want = grad[r * 3 + c];
+            if lists.iter().any(|l| l.contains(&(r as i32))) {
+                assert_eq!(local[sparse.slot(r as i32) as usize * 3 + c], want);
+            } else {
+                assert_eq!(want, 0.0);
+            }
+        }
+    }
     // The same picks (every lattice point is a row here, row = flat index).
     let count = (n as f32 * fraction).ceil() as usize;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -206,6 +225,43 @@ fn sh_tv_gradient_matches_finite_differences() {
     let touched: std::collections::HashSet<usize> =
         picks.iter().flat_map(|&r| [r, neighbour(r, 0), neighbour(r, 1), neighbour(r, 2)]).collect();
     assert!((0..n).filter(|r| !touched.contains(r)).all(|r| (0..3).all(|c| grad[r * 3 + c] == 0.0)));
+}
+
+/// svox2's RMSprop: the average starts at the first squared gradient, so
+/// the first step is lr * sign(g) (the zero start takes 1/sqrt(1 - beta)
+/// times that); a lazy step leaves the rows it does not name, values and
+/// state, untouched.
+#[test]
+fn rmsprop_first_gradient_start_and_lazy_rows() {
+    let d = common::device();
+    let (lr, beta) = (0.1f32, 0.95f32);
+    let grad = floats(vec![0.2, -3.0, 0.0, 5e-3, 1.0, -1.0], [2, 3], &d);
+    for (start, factor) in [(RmsStart::FirstGrad, 1.0f32), (RmsStart::Zero, 1.0 / (1.0 - beta).sqrt())] {
+        let opt = Rmsprop { beta, eps: 1e-8, start };
+        let (mut x, mut v) = (Tensor::<2>::zeros([2, 3], &d), Tensor::<2>::zeros([2, 3], &d));
+        opt.step_dense(&mut x, &mut v, grad.clone(), lr);
+        let x = to_vec(x);
+        for (i, &g) in to_vec(grad.clone()).iter().enumerate() {
+            let want = if g == 0.0 { 0.0 } else { -lr * factor * g.signum() };
+            assert!(close(x[i], want, 1e-4), "{start:?} element {i}: {} vs {want}", x[i]);
+        }
+        // Second step with the same gradient on row 1 only (lazy): row 0 keeps
+        // its value and average; row 1 under the first-gradient start keeps
+        // an average of g^2, so its step is again lr * sign(g).
+        let (mut x, mut v) = (Tensor::<2>::zeros([2, 3], &d), Tensor::<2>::zeros([2, 3], &d));
+        opt.step_dense(&mut x, &mut v, grad.clone(), lr);
+        let (x0, v0) = (to_vec(x.clone()), to_vec(v.clone()));
+        let row1 = grad.clone().narrow(0, 1, 1);
+        opt.step_rows(&mut x, &mut v, &refnpr::util::tensor::indices(vec![1], &d), row1, lr);
+        let (x1, v1) = (to_vec(x), to_vec(v));
+        assert_eq!(&x1[..3], &x0[..3]);
+        assert_eq!(&v1[..3], &v0[..3]);
+        if start == RmsStart::FirstGrad {
+            for c in 3..6 {
+                assert!(close(x1[c] - x0[c], x0[c], 1e-4), "channel {c}: {} then {}", x0[c], x1[c] - x0[c]);
+            }
+        }
+    }
 }
 
 fn test_camera(size: u32) -> Camera {
@@ -275,9 +331,26 @@ fn deferred_backprop_equals_direct_backprop() {
     let image = image_tensor(&frozen, w, h, &ad).require_grad();
     let grads = loss_of(image.clone()).backward();
     let g = image.grad(&grads).unwrap().reshape([3, w * h]).transpose();
-    let deferred = to_vec(chunked_gradient(&grid.sh, &samples, bg, 173, &|rgb, start, len| {
+    let rows = StepRows::dense(grid.num_rows());
+    let deferred = to_vec(chunked_gradient(&grid.sh, &samples, bg, 173, &rows, &|rgb, start, len| {
         (rgb * g.clone().narrow(0, start, len)).sum()
     }));
+    // Sparse: the touched rows' gradients, in touched order; nothing elsewhere.
+    let mut touched = StepRows::sparse(grid.num_rows());
+    touched.add(&samples.corner_rows);
+    let local = to_vec(chunked_gradient(&grid.sh, &samples, bg, 173, &touched, &|rgb, start, len| {
+        (rgb * g.clone().narrow(0, start, len)).sum()
+    }));
+    let in_samples: std::collections::HashSet<i32> = samples.corner_rows.iter().copied().collect();
+    for r in 0..grid.num_rows() as i32 {
+        let ours = &deferred[r as usize * 3..r as usize * 3 + 3];
+        if in_samples.contains(&r) {
+            let slot = touched.slot(r) as usize;
+            assert_eq!(&local[slot * 3..slot * 3 + 3], ours, "row {r}");
+        } else {
+            assert!(ours.iter().all(|&x| x == 0.0), "untouched row {r} has a gradient");
+        }
+    }
     // Direct: one graph from the grid to the loss.
     let leaf = grid.sh.clone().autodiff().require_grad();
     let rgb = render_colour(leaf.clone(), &samples.upload(&d), bg);
@@ -403,16 +476,24 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
 #[test]
 fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
     use refnpr::reference::case::ReferenceCase;
-    use refnpr::reference::registration::run_register;
+    use refnpr::reference::registration::{PhotoRun, run_register};
     let t = TempDir::new("stylize-registration");
     let photo = tiny_photo_run(t.path(), 60, 6);
     let scene = t.path().join("scene");
     let case = write_case(t.path(), &scene, 0, "");
     let (ck, ds) = checkpoint::load_run(&photo, None, &common::device()).unwrap();
     let r3 = t.path().join("r3");
-    let registered =
-        run_register(&ck, &ds, &ReferenceCase::load(&case).unwrap(), &Default::default(), &r3, 0, &refnpr::Quiet)
-            .unwrap();
+    let registered = run_register(
+        &ck,
+        &PhotoRun::of(&ck, &photo),
+        &ds,
+        &ReferenceCase::load(&case).unwrap(),
+        &Default::default(),
+        &r3,
+        0,
+        &refnpr::Quiet,
+    )
+    .unwrap();
     assert!(registered.registered_pixels > 0);
 
     let mut config = quick_config(1);
@@ -455,6 +536,23 @@ fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
     )
     .unwrap_err();
     assert!(format!("{err:#}").contains("registration.bin"), "{err:#}");
+
+    // The same file with another photoreal run of the same scene (fewer
+    // steps): refused, naming both runs.
+    let other_photo = tiny_photo_run(&other, 30, 6);
+    let err = run_stylize(
+        &StylizeJob {
+            registration: Some(r3.clone()),
+            render_test: false,
+            ..job(&other_photo, &case, &t.path().join("bad2"), quick_config(1), Method::RefNpr)
+        },
+        &refnpr::Quiet,
+    )
+    .unwrap_err();
+    let message = format!("{err:#}");
+    for run in [&photo, &other_photo] {
+        assert!(message.contains(&run.display().to_string()), "{message} does not name {}", run.display());
+    }
 }
 
 /// Bad input: a case for another scene, a style image of another shape, a
@@ -583,7 +681,7 @@ fn ablation_configs_each_change_one_switch() {
 /// more closely than the photoreal field does.
 #[test]
 fn robustness_restylizes_with_the_runs_method() {
-    use refnpr::eval::stylization::{EvalJob, evaluate_stylization, render_surface};
+    use refnpr::eval::stylization::{EvalJob, RobustnessViews, evaluate_stylization, render_surface};
     let t = TempDir::new("stylize-robustness");
     let photo = tiny_photo_run(t.path(), 120, 6);
     let frames = 12;
@@ -599,14 +697,24 @@ fn robustness_restylizes_with_the_runs_method() {
             case: case.clone(),
             gt: None,
             robustness: 1,
+            robustness_views: RobustnessViews::Near,
             backend: common::backend(),
             data: None,
             robustness_epochs: Some(2),
         };
         let e = evaluate_stylization(&eval, &refnpr::Quiet).unwrap();
-        let again: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("robustness/stylized_0/stylize.json")).unwrap())
-                .unwrap();
+        // The path frame nearest the reference camera (training view 1).
+        let (_, ds) = checkpoint::load_run(&out, None, &d).unwrap();
+        let reference = ds.train[1].camera.position();
+        let path = ds.render_path(frames);
+        let nearest = (0..frames)
+            .min_by(|&a, &b| path[a].position().distance(reference).total_cmp(&path[b].position().distance(reference)))
+            .unwrap();
+        assert_eq!(e.robustness_frames, vec![nearest]);
+        let again: serde_json::Value = serde_json::from_str(
+            &std::fs::read_to_string(out.join(format!("robustness/stylized_{nearest}/stylize.json"))).unwrap(),
+        )
+        .unwrap();
         assert_eq!(again["method"], serde_json::to_value(method).unwrap(), "{method:?} restylized with another method");
         let robustness = e.robustness_psnr.expect("robustness asked for");
         // The photoreal field against the run's path renders: where a

@@ -8,7 +8,7 @@ use clap::parser::ValueSource;
 use clap::{ArgMatches, CommandFactory, FromArgMatches, Parser, Subcommand};
 use refnpr::eval::photoreal::evaluate;
 use refnpr::eval::render_path::{self, PathKind};
-use refnpr::eval::stylization::{self, EvalJob};
+use refnpr::eval::stylization::{self, EvalJob, RobustnessViews};
 use refnpr::field::checkpoint::{self, Checkpoint};
 use refnpr::photo::config::TrainConfig;
 use refnpr::photo::run::run_training;
@@ -172,6 +172,9 @@ enum Command {
         /// Image epochs of each robustness stylization (default: the run's).
         #[arg(long)]
         robustness_epochs: Option<usize>,
+        /// Which path frames --robustness restylizes from: the nearest to the reference camera, or spread along the path.
+        #[arg(long, value_enum, default_value_t = RobustnessViews::Near)]
+        robustness_views: RobustnessViews,
         /// Also write the JSON here.
         #[arg(long)]
         out: Option<PathBuf>,
@@ -265,11 +268,11 @@ fn run() -> Result<()> {
             let stylize = matches.subcommand_matches("stylize").expect("the stylize subcommand was parsed");
             run_stylize_command(cli.command, stylize, &progress)
         }
-        Command::Eval { run, reference, gt, robustness, robustness_epochs, out, data, backend } => {
+        Command::Eval { run, reference, gt, robustness, robustness_epochs, robustness_views, out, data, backend } => {
             let backend = backend_or_env(backend)?;
             let json = match reference {
                 Some(case) => {
-                    let job = EvalJob { run, case, gt, robustness, backend, data, robustness_epochs };
+                    let job = EvalJob { run, case, gt, robustness, robustness_views, backend, data, robustness_epochs };
                     serde_json::to_value(stylization::evaluate_stylization(&job, &progress)?)?
                 }
                 None => {
@@ -354,6 +357,12 @@ fn run_demo(
     );
     let st: Vec<String> = e.stability.iter().map(|s| format!("{} frame(s) apart {:.4}", s.gap, s.rmse)).collect();
     println!("  ref_lpips {:.4}; stability (warp RMSE) {}", e.ref_lpips, st.join(", "));
+    println!(
+        "  speckle {:.2}% of the surface pixels (test views {}, ground truth {})",
+        100.0 * e.speckle,
+        e.speckle_test.map_or("-".into(), |v| format!("{:.2}%", 100.0 * v)),
+        e.gt_speckle.map_or("-".into(), |v| format!("{:.2}%", 100.0 * v))
+    );
     println!("  all figures: {}", out.join("eval.json").display());
     Ok(())
 }
@@ -451,7 +460,8 @@ fn run_register(
 ) -> Result<()> {
     let (ck, dataset) = load_run(&inputs.photo, inputs.data)?;
     let case = ReferenceCase::load(&inputs.reference)?;
-    let r = registration::run_register(&ck, &dataset, &case, params, out, overlays, progress)?;
+    let photo = registration::PhotoRun::of(&ck, &inputs.photo);
+    let r = registration::run_register(&ck, &photo, &dataset, &case, params, out, overlays, progress)?;
     println!(
         "registered {} pixels ({:.1}% of surface pixels) over {} views; depth {:.2}s, dictionary {:.3}s, registration {:.3}s",
         r.registered_pixels,

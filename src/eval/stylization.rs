@@ -15,6 +15,11 @@
 //! - `stability`: colour RMSE between render-path frames warped into each
 //!   other with the field's depth (frames 1 and 7 apart), over points visible
 //!   in both;
+//! - `speckle`: the fraction of surface pixels of the path frames that
+//!   differ from the median of their 3x3 neighbourhood by more than 0.1 in
+//!   some channel (`metrics::speckle`); with a ground truth also on the test
+//!   views (`speckle_test`) and on the ground truth itself (`gt_speckle`,
+//!   same pixels), which says how much of it is real detail;
 //! - `robustness_psnr`: the stylized field's own renders at N path views used
 //!   as new references, stylized again with the run's method; PSNR between
 //!   the two fields' renders along the path, averaged.
@@ -207,8 +212,27 @@ pub struct StylizationEval {
     /// Fraction of the test views' surface pixels no reference sees.
     pub occluded_fraction: Option<f32>,
     pub stability: Vec<Stability>,
+    /// Speckled fraction of the path frames' surface pixels.
+    pub speckle: f32,
+    /// The same on the test views, and on the ground truth at those pixels.
+    pub speckle_test: Option<f32>,
+    pub gt_speckle: Option<f32>,
     pub robustness_psnr: Option<f32>,
+    /// The path frames used as new references by the robustness test.
+    pub robustness_frames: Vec<usize>,
     pub path_frames: usize,
+}
+
+/// Which path frames the robustness test restylizes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum RobustnessViews {
+    /// The N path frames nearest the (first) reference camera: the new
+    /// references show what the original reference showed.
+    Near,
+    /// N frames spread evenly along the path (k * frames / N), the second
+    /// and later ones showing surfaces the reference never saw.
+    Spread,
 }
 
 /// What to evaluate.
@@ -217,6 +241,7 @@ pub struct EvalJob {
     pub case: PathBuf,
     pub gt: Option<PathBuf>,
     pub robustness: usize,
+    pub robustness_views: RobustnessViews,
     pub backend: BackendKind,
     pub data: Option<PathBuf>,
     /// Epochs of the robustness re-stylizations (None = the run's own schedule).
@@ -248,8 +273,20 @@ pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<St
         Some(gt) => Some(ground_truth_psnrs(&ck, &dataset, &case, gt)?),
         None => None,
     };
-    let robustness_psnr =
-        if job.robustness > 0 { Some(robustness(job, &ck, &frames, case.path_frames, progress)?) } else { None };
+    let robustness_frames = match job.robustness_views {
+        _ if job.robustness == 0 => Vec::new(),
+        RobustnessViews::Spread => (0..job.robustness).map(|k| k * frames.len() / job.robustness).collect(),
+        RobustnessViews::Near => {
+            let reference = case.cameras(&dataset)?[0];
+            let path: Vec<Camera> = frames.iter().map(|f| f.camera).collect();
+            nearest_cameras(&path, &reference, job.robustness)
+        }
+    };
+    let robustness_psnr = if robustness_frames.is_empty() {
+        None
+    } else {
+        Some(robustness(job, &ck, &frames, &robustness_frames, case.path_frames, progress)?)
+    };
     Ok(StylizationEval {
         run: job.run.clone(),
         reference: job.case.clone(),
@@ -260,7 +297,11 @@ pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<St
         gt_psnr_occluded: truth.and_then(|t| t.occluded),
         occluded_fraction: truth.map(|t| t.occluded_fraction),
         stability: stability(&frames, tolerance(&ck)),
+        speckle: speckle_fraction(frames.iter().map(|f| (&f.image, &f.image.rgb, &f.points))),
+        speckle_test: truth.map(|t| t.speckle),
+        gt_speckle: truth.map(|t| t.gt_speckle),
         robustness_psnr,
+        robustness_frames,
         path_frames: path.len(),
     })
 }
@@ -298,6 +339,22 @@ struct TruthPsnrs {
     /// Over the surface pixels no reference sees (None when there are none).
     occluded: Option<f32>,
     occluded_fraction: f32,
+    speckle: f32,
+    gt_speckle: f32,
+}
+
+/// The speckled fraction of the surface pixels of a set of images: each
+/// item is (the render, the colours to measure - its own or the ground
+/// truth's at the same camera - and the render's surface points).
+fn speckle_fraction<'a>(images: impl Iterator<Item = (&'a Image, &'a Vec<f32>, &'a Vec<Option<Vec3>>)>) -> f32 {
+    let (mut speckled, mut counted) = (0, 0);
+    for (image, rgb, points) in images {
+        let mask: Vec<bool> = points.iter().map(Option::is_some).collect();
+        let (s, n) = metrics::speckle(rgb, image.width, image.height, &mask);
+        speckled += s;
+        counted += n;
+    }
+    speckled as f32 / counted.max(1) as f32
 }
 
 fn ground_truth_psnrs(
@@ -318,6 +375,7 @@ fn ground_truth_psnrs(
     );
     let refs: Vec<SurfaceRender> = case.cameras(dataset)?.iter().map(|c| render_surface(ck, c)).collect();
     let (mut all, mut occ, mut surface, mut hidden) = ((0.0f64, 0usize), (0.0f64, 0usize), 0usize, 0usize);
+    let mut renders = Vec::new();
     for (v, t) in gt.test.iter().enumerate() {
         ensure!(
             t.camera.intrinsics.width == dataset.test[v].camera.intrinsics.width,
@@ -332,11 +390,14 @@ fn ground_truth_psnrs(
         if let Some((s, n)) = psnr_masked(&r.image.rgb, &t.rgb, &unseen) {
             occ = (occ.0 + s, occ.1 + n);
         }
+        renders.push(r);
     }
     Ok(TruthPsnrs {
         all: metrics::psnr_from_mse((all.0 / all.1 as f64) as f32),
         occluded: (occ.1 > 0).then(|| metrics::psnr_from_mse((occ.0 / occ.1 as f64) as f32)),
         occluded_fraction: hidden as f32 / surface.max(1) as f32,
+        speckle: speckle_fraction(renders.iter().map(|r| (&r.image, &r.image.rgb, &r.points))),
+        gt_speckle: speckle_fraction(renders.iter().zip(&gt.test).map(|(r, t)| (&r.image, &t.rgb, &r.points))),
     })
 }
 
@@ -357,12 +418,13 @@ fn stability(frames: &[SurfaceRender], tol: Tolerance) -> Vec<Stability> {
         .collect()
 }
 
-/// Restylizes from `job.robustness` of the run's own path renders and
+/// Restylizes from the run's own renders at path frames `chosen` and
 /// compares the path renders of each result with the run's.
 fn robustness(
     job: &EvalJob,
     ck: &Checkpoint,
     frames: &[SurfaceRender],
+    chosen: &[usize],
     path_frames: usize,
     progress: &dyn Progress,
 ) -> Result<f32> {
@@ -380,8 +442,7 @@ fn robustness(
     }
     let work = job.run.join("robustness");
     let mut psnrs = Vec::new();
-    for k in 0..job.robustness {
-        let frame = k * frames.len() / job.robustness;
+    for (k, &frame) in chosen.iter().enumerate() {
         let case_dir = work.join(format!("case_{frame}"));
         frames[frame].image.save_png(&case_dir.join("style.png"))?;
         files::write_text(
@@ -395,7 +456,7 @@ fn robustness(
         progress.event(Event::Step {
             phase: Phase::Robustness,
             done: k,
-            total: job.robustness,
+            total: chosen.len(),
             message: format!("restylizing from path frame {frame}"),
         });
         let restyle = StylizeJob {

@@ -56,6 +56,17 @@ pub struct Checkpoint {
 }
 
 impl Checkpoint {
+    /// A fingerprint of the field (FNV-1a over its geometry, step and
+    /// density): two runs, or one run at two steps, differ in it.
+    pub fn fingerprint(&self) -> u64 {
+        let g = &self.meta.geometry;
+        let words = g.res.iter().map(|&r| r as u32).chain([self.meta.step as u32, self.grid.num_rows() as u32]);
+        let bits = self.grid.density_cpu.iter().map(|d| d.to_bits());
+        words.chain(bits).fold(0xcbf2_9ce4_8422_2325u64, |h, w| {
+            w.to_le_bytes().iter().fold(h, |h, &b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3))
+        })
+    }
+
     /// Renders `camera`'s view of the checkpoint's field with its own march
     /// settings, NDC warp and background.
     pub fn render_view(&self, camera: &Camera) -> ViewRender {

@@ -8,6 +8,7 @@
 //! scales of density and colour.
 
 use burn::tensor::{IndexingUpdateOp, Int, Tensor};
+use serde::{Deserialize, Serialize};
 
 use crate::util::tensor::assign_rows;
 
@@ -16,17 +17,36 @@ pub fn log_lerp(a: f32, b: f32, t: f32) -> f32 {
     (a.ln() * (1.0 - t) + b.ln() * t).exp()
 }
 
+/// Where RMSprop's running average of squared gradients starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RmsStart {
+    /// At zero (PyTorch): the first steps are up to 1/sqrt(1 - beta) times lr.
+    Zero,
+    /// At the first squared gradient (svox2's kernel: `rms == 0 ? g*g : lerp`):
+    /// the first step of every coordinate is lr * sign(g).
+    FirstGrad,
+}
+
 /// RMSprop: v = beta v + (1 - beta) g^2; x -= lr g / (sqrt(v) + eps).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Rmsprop {
     pub beta: f32,
     pub eps: f32,
+    pub start: RmsStart,
 }
 
 impl Rmsprop {
     /// The running average after gradient `grad`.
     fn average(&self, avg: Tensor<2>, grad: Tensor<2>) -> Tensor<2> {
-        avg * self.beta + grad.clone() * grad * (1.0 - self.beta)
+        let sq = grad.clone() * grad;
+        match self.start {
+            RmsStart::Zero => avg * self.beta + sq * (1.0 - self.beta),
+            RmsStart::FirstGrad => {
+                let fresh = avg.clone().equal_elem(0.0);
+                (avg * self.beta + sq.clone() * (1.0 - self.beta)).mask_where(fresh, sq)
+            }
+        }
     }
 
     /// The normalised gradient g / (sqrt(v) + eps), before the learning rate.

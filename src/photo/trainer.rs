@@ -20,7 +20,7 @@ use crate::field::checkpoint::{self, CheckpointMeta};
 use crate::field::composite::{self, BatchTensors};
 use crate::field::grid::{GridGeometry, RadianceGrid};
 use crate::field::march::{BlockOccupancy, Marcher};
-use crate::field::optim::{Rmsprop, RowSubset, TvNorm, log_lerp, total_variation};
+use crate::field::optim::{RmsStart, Rmsprop, RowSubset, TvNorm, log_lerp, total_variation};
 use crate::photo::config::TrainConfig;
 use crate::scene::camera::Ray;
 use crate::scene::data::Dataset;
@@ -216,7 +216,7 @@ impl Trainer {
         let mse_value = scalar(mse.inner());
         let (lr_d, lr_s) = self.learning_rates();
         if let (Some(gd), Some(gs)) = (ld.grad(&grads), ls.grad(&grads)) {
-            let rmsprop = Rmsprop { beta: cfg.optim.rmsprop_beta, eps: cfg.optim.eps };
+            let rmsprop = Rmsprop { beta: cfg.optim.rmsprop_beta, eps: cfg.optim.eps, start: RmsStart::Zero };
             let new_d =
                 ld.inner() + rmsprop.step_rows(&mut self.grid.density, &mut self.state.density, &rows_t, gd, lr_d);
             rmsprop.step_rows(&mut self.grid.sh, &mut self.state.sh, &rows_t, gs, lr_s);

@@ -20,7 +20,7 @@ use crate::util::image::{self, Image};
 use crate::util::progress::{Progress, WarningLog};
 
 pub const REGISTRATION_FILE: &str = "registration.bin";
-const MAGIC: &[u8; 8] = b"REFNPRR2";
+const MAGIC: &[u8; 8] = b"REFNPRR3";
 
 /// The surface a camera sees in the photoreal field (equation-4 depth).
 pub fn field_surface(ck: &Checkpoint, camera: &Camera) -> Surface {
@@ -66,9 +66,31 @@ pub fn write_reference_skeleton(ck: &Checkpoint, dataset: &Dataset, view: &ViewS
     Ok(out.join("content.png"))
 }
 
+/// Which photoreal run a registration was made on: its folder (as given)
+/// and a fingerprint of its grid (geometry, step, density), which decides.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct PhotoRun {
+    pub dir: PathBuf,
+    pub fingerprint: u64,
+}
+
+impl PhotoRun {
+    pub fn of(ck: &Checkpoint, dir: &Path) -> Self {
+        Self { dir: dir.to_path_buf(), fingerprint: ck.fingerprint() }
+    }
+}
+
+impl std::fmt::Display for PhotoRun {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} (grid fingerprint {:016x})", self.dir.display(), self.fingerprint)
+    }
+}
+
 /// The pseudo-rays of a registration, as written to `registration.bin`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RegistrationFile {
+    /// The photoreal run it was made on.
+    pub photo: PhotoRun,
     /// The settings it was made with.
     pub params: RegisterParams,
     /// The reference pixels themselves (every pixel of each reference view
@@ -128,9 +150,26 @@ impl RegistrationFile {
             .collect()
     }
 
-    /// Refuses a file made for other training views or another case (other
-    /// cameras, or a style image repainted since), naming `source`.
-    pub fn check_matches(&self, dataset: &Dataset, references: &[ReferencePixels], source: &Path) -> Result<()> {
+    /// Refuses a file made on another photoreal run (naming both), for other
+    /// training views or another case (other cameras, or a style image
+    /// repainted since), naming `source`.
+    pub fn check_matches(
+        &self,
+        photo: &PhotoRun,
+        dataset: &Dataset,
+        references: &[ReferencePixels],
+        source: &Path,
+    ) -> Result<()> {
+        if self.photo.fingerprint != photo.fingerprint {
+            bail!(
+                "{} was registered on the photoreal run {}, not on this stylization's photoreal run {}: \
+                 run `refnpr register` on {} (or leave out --registration)",
+                source.display(),
+                self.photo,
+                photo,
+                photo.dir.display()
+            );
+        }
         let names: Vec<&str> = self.views.iter().map(|v| v.name.as_str()).collect();
         let expected: Vec<&str> = dataset.train.iter().map(|v| v.name.as_str()).collect();
         if names != expected {
@@ -208,6 +247,7 @@ pub fn lift_references(
 /// training view. Returns the pseudo-rays and the report (no files written).
 pub fn register_case(
     ck: &Checkpoint,
+    photo: &PhotoRun,
     dataset: &Dataset,
     case: &ReferenceCase,
     params: &RegisterParams,
@@ -240,6 +280,7 @@ pub fn register_case(
     };
     let register_seconds = t2.elapsed().as_secs_f64();
     let file = RegistrationFile {
+        photo: photo.clone(),
         params: *params,
         references: ref_pixels,
         views: dataset
@@ -271,6 +312,7 @@ pub fn register_case(
 /// content render) for the first `overlays` training views.
 pub fn run_register(
     ck: &Checkpoint,
+    photo: &PhotoRun,
     dataset: &Dataset,
     case: &ReferenceCase,
     params: &RegisterParams,
@@ -279,7 +321,7 @@ pub fn run_register(
     progress: &dyn Progress,
 ) -> Result<RegisterReport> {
     files::create_dir(out)?;
-    let (file, report) = register_case(ck, dataset, case, params, progress)?;
+    let (file, report) = register_case(ck, photo, dataset, case, params, progress)?;
     file.save(&out.join(REGISTRATION_FILE))?;
     files::write_json(&out.join("register.json"), &report)?;
     let dir = out.join("overlays");

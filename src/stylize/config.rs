@@ -6,8 +6,42 @@ use anyhow::{Context, Result, ensure};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
+use crate::field::optim::RmsStart;
 use crate::reference::r3::RegisterParams;
 use crate::util::config;
+
+/// How the SH learning rate moves over a stylization.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LrSchedule {
+    /// The refit at `lr_refit`; the image epochs decay from `lr` to `lr_final` over their own steps.
+    PerPhase,
+    /// One exponential decay from `lr` to `lr_final` over `lr_decay_steps`
+    /// optimiser steps, counted from the refit's first step through the
+    /// image epochs (the released code: 0.1 -> 0.01 over 250,000 steps).
+    Shared,
+}
+
+/// What L_color's squared error is averaged over.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ColourNorm {
+    /// Summed over channels, averaged over the supervised positions.
+    Matched,
+    /// Averaged over channels and over all relu5 positions, the unsupervised
+    /// ones counting zero (the released code).
+    AllPositions,
+}
+
+/// Which patches L_color treats as background (no colour loss).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WhiteOn {
+    /// The content render's patch, brighter than `colour_white` in every channel (fixed per view).
+    Content,
+    /// The current render's patch, its channel mean above `colour_white` (the released code, every step).
+    Render,
+}
 
 /// Phases and optimiser.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -26,6 +60,10 @@ pub struct ScheduleConfig {
     /// SH learning rate of the image epochs, decaying exponentially to `lr_final`.
     pub lr: f32,
     pub lr_final: f32,
+    /// `per_phase` or `shared` (see `LrSchedule`).
+    pub lr_schedule: LrSchedule,
+    /// Steps of the shared schedule's decay from `lr` to `lr_final`.
+    pub lr_decay_steps: usize,
     pub rmsprop_beta: f32,
     pub eps: f32,
 }
@@ -40,6 +78,8 @@ impl Default for ScheduleConfig {
             smooth_fraction: 0.25,
             lr: 0.1,
             lr_final: 0.01,
+            lr_schedule: LrSchedule::PerPhase,
+            lr_decay_steps: 250_000,
             rmsprop_beta: 0.95,
             eps: 1e-8,
         }
@@ -54,6 +94,8 @@ pub struct LossConfig {
     pub reference: f32,
     /// Pseudo-rays per step drawn from the reference view(s) (all of them when fewer).
     pub reference_rays: usize,
+    /// Reference pixels whose ray misses the scene are pseudo-rays too (the released code).
+    pub reference_misses: bool,
     /// Pseudo-rays per step drawn from the registered pixels of the training views.
     pub registered_rays: usize,
     /// λ_f: TCM feature loss.
@@ -64,8 +106,12 @@ pub struct LossConfig {
     pub colour: f32,
     /// Colour matches whose cosine distance exceeds this are ignored (released code 0.6, paper 0.4).
     pub colour_max_distance: f32,
-    /// Content patches brighter than this in every channel (background) get no colour loss.
+    /// Patches brighter than this (see `colour_white_on`) get no colour loss (background).
     pub colour_white: f32,
+    /// `content` or `render` (see `WhiteOn`).
+    pub colour_white_on: WhiteOn,
+    /// `matched` or `all_positions` (see `ColourNorm`).
+    pub colour_norm: ColourNorm,
     /// Feature loss weight during the smooth content update (λ' is 0 there).
     pub smooth_feature: f32,
     /// Image total variation on the rendered view.
@@ -80,17 +126,41 @@ impl Default for LossConfig {
         Self {
             reference: 10.0,
             reference_rays: 50_000,
+            reference_misses: false,
             registered_rays: 50_000,
             feature: 1.0,
             content: 5e-3,
             colour: 5.0,
             colour_max_distance: 0.6,
             colour_white: 0.99,
+            colour_white_on: WhiteOn::Content,
+            colour_norm: ColourNorm::Matched,
             smooth_feature: 0.2,
             image_tv: 1.0,
             tv_sh: 1e-3,
             tv_fraction: 0.1,
         }
+    }
+}
+
+/// The stylization's optimiser: RMSprop on the SH rows.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OptimConfig {
+    /// Where the squared-gradient average starts: `zero` or `first_grad` (svox2).
+    pub rms_init: RmsStart,
+    /// Update only the rows the step touched (its rays' samples and the
+    /// TV rows), leaving the others and their state alone (svox2); false
+    /// updates every row every step.
+    pub sparse: bool,
+    /// Keep the optimiser state from the refit into the image epochs (svox2)
+    /// instead of starting each phase afresh.
+    pub keep_state: bool,
+}
+
+impl Default for OptimConfig {
+    fn default() -> Self {
+        Self { rms_init: RmsStart::Zero, sparse: false, keep_state: false }
     }
 }
 
@@ -147,6 +217,7 @@ impl Default for ArfConfig {
 pub struct StylizeConfig {
     pub seed: u64,
     pub schedule: ScheduleConfig,
+    pub optim: OptimConfig,
     pub loss: LossConfig,
     pub ablation: AblationConfig,
     pub arf: ArfConfig,
@@ -166,6 +237,7 @@ impl Default for StylizeConfig {
         Self {
             seed: 20200823,
             schedule: ScheduleConfig::default(),
+            optim: OptimConfig::default(),
             loss: LossConfig::default(),
             ablation: AblationConfig::default(),
             arf: ArfConfig::default(),
@@ -207,6 +279,7 @@ impl StylizeConfig {
         ] {
             ensure!(v.is_finite() && v > 0.0, "{name} must be a positive number, got {v}");
         }
+        ensure!(s.lr_decay_steps > 0, "schedule.lr_decay_steps must be positive");
         ensure!((0.0..1.0).contains(&s.rmsprop_beta), "schedule.rmsprop_beta must be in [0, 1)");
         for (name, v) in [
             ("loss.reference", l.reference),

@@ -1,6 +1,7 @@
 //! The grid being stylized: SH degree 0, density frozen, its RMSprop state
-//! and SH total variation; and the chunked gradient of a loss over rendered
-//! rays (the second half of deferred back-propagation).
+//! and SH total variation; the rows a step updates (`StepRows`: all, or
+//! only those the step touched); and the chunked gradient of a loss over
+//! rendered rays (the second half of deferred back-propagation).
 
 use burn::tensor::{IndexingUpdateOp, Tensor};
 use rand::Rng;
@@ -11,6 +12,55 @@ use crate::field::grid::RadianceGrid;
 use crate::field::optim::{Rmsprop, RowSubset, TvNorm, total_variation};
 use crate::util::chunk_ranges;
 use crate::util::tensor::{assign_rows, indices, select_rows};
+
+/// The rows one optimiser step updates, and where each one's gradient sits
+/// in the step's gradient buffer: every row of the grid (dense; the buffer
+/// is grid-sized) or only the rows the step touches (sparse, as svox2: its
+/// rays' samples and the TV rows; the buffer has one row per touched row).
+pub struct StepRows {
+    num_rows: usize,
+    touched: Option<RowSubset>,
+}
+
+impl StepRows {
+    pub fn dense(num_rows: usize) -> Self {
+        Self { num_rows, touched: None }
+    }
+
+    pub fn sparse(num_rows: usize) -> Self {
+        let mut s = RowSubset::default();
+        s.clear(num_rows);
+        Self { num_rows, touched: Some(s) }
+    }
+
+    /// Marks `rows` as touched (nothing to do when dense).
+    pub fn add(&mut self, rows: &[i32]) {
+        if let Some(s) = &mut self.touched {
+            for &r in rows {
+                s.insert(r);
+            }
+        }
+    }
+
+    /// Rows in the gradient buffer.
+    pub fn len(&self) -> usize {
+        self.touched.as_ref().map_or(self.num_rows, |s| s.rows().len())
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The buffer row of grid row `row` (it must have been added).
+    pub fn slot(&self, row: i32) -> i32 {
+        self.touched.as_ref().map_or(row, |s| s.local(row))
+    }
+
+    /// An empty gradient buffer.
+    pub fn zeros(&self, device: &burn::tensor::Device) -> Tensor<2> {
+        Tensor::zeros([self.len(), 3], device)
+    }
+}
 
 /// The grid being stylized: SH degree 0, density frozen, RMSprop state.
 pub struct StyleField {
@@ -36,37 +86,58 @@ impl StyleField {
         self.rms = Tensor::zeros([self.grid.num_rows(), 3], &self.grid.device());
     }
 
-    /// Dense RMSprop step on the SH rows (density untouched).
-    pub fn rmsprop(&mut self, grad: Tensor<2>, lr: f32, beta: f32, eps: f32) {
-        Rmsprop { beta, eps }.step_dense(&mut self.grid.sh, &mut self.rms, grad, lr);
+    /// The rows a step will update: all, or (sparse) none yet.
+    pub fn step_rows(&self, sparse: bool) -> StepRows {
+        let n = self.grid.num_rows();
+        if sparse { StepRows::sparse(n) } else { StepRows::dense(n) }
     }
 
-    /// `into` plus the gradient of `weight` x the SH total variation over a
-    /// random `fraction` of the rows (mean over those rows of sqrt(sum of
-    /// squared differences to the +x/+y/+z neighbours)). Adding into the
-    /// caller's gradient saves a grid-sized buffer and a grid-sized sum per step.
-    pub fn add_tv_gradient(&self, into: Tensor<2>, weight: f32, fraction: f32, rng: &mut ChaCha8Rng) -> Tensor<2> {
+    /// One RMSprop step on the SH rows of `rows` (density untouched); `grad`
+    /// is the step's gradient buffer.
+    pub fn rmsprop(&mut self, grad: Tensor<2>, rows: &StepRows, lr: f32, opt: Rmsprop) {
+        match &rows.touched {
+            None => opt.step_dense(&mut self.grid.sh, &mut self.rms, grad, lr),
+            Some(s) if !s.rows().is_empty() => {
+                let ids = indices(s.rows().to_vec(), &self.grid.device());
+                opt.step_rows(&mut self.grid.sh, &mut self.rms, &ids, grad, lr);
+            }
+            Some(_) => {}
+        }
+    }
+
+    /// The rows of one SH TV term: a random `fraction` of the rows and, per
+    /// axis, their +x/+y/+z neighbours (empty when `weight` is 0).
+    pub fn tv_rows(&self, weight: f32, fraction: f32, rng: &mut ChaCha8Rng) -> Vec<Vec<i32>> {
         let n = self.grid.num_rows();
         if weight <= 0.0 || n == 0 {
-            return into;
+            return Vec::new();
         }
         let count = ((n as f32 * fraction).ceil() as usize).clamp(1, n);
         let core: Vec<i32> = (0..count).map(|_| rng.random_range(0..n) as i32).collect();
-        // Leaf = the rows involved (the picked rows and their neighbours), local indices.
-        let lists: Vec<Vec<i32>> = std::iter::once(core.clone())
+        std::iter::once(core.clone())
             .chain(self.neighbours.iter().map(|nb| core.iter().map(|&r| nb[r as usize]).collect()))
-            .collect();
-        let subset = RowSubset::of(n, &lists.concat());
+            .collect()
+    }
+
+    /// `into` plus the gradient of `weight` x the SH total variation over
+    /// the rows `lists` of `tv_rows` (mean over the picked rows of
+    /// sqrt(sum of squared differences to the +x/+y/+z neighbours)). Adding
+    /// into the caller's gradient saves a buffer and a sum per step.
+    pub fn add_tv_gradient(&self, into: Tensor<2>, weight: f32, lists: &[Vec<i32>], rows: &StepRows) -> Tensor<2> {
+        let Some(count) = lists.first().map(Vec::len).filter(|&c| c > 0 && weight > 0.0) else { return into };
+        // Leaf = the rows involved (the picked rows and their neighbours), local indices.
+        let subset = RowSubset::of(self.grid.num_rows(), &lists.concat());
         let device = self.grid.device();
-        let rows = indices(subset.rows().to_vec(), &device);
-        let leaf = select_rows(self.grid.sh.clone(), rows.clone()).autodiff().require_grad();
+        let leaf_rows = indices(subset.rows().to_vec(), &device);
+        let leaf = select_rows(self.grid.sh.clone(), leaf_rows).autodiff().require_grad();
         let mut gathered = lists
-            .into_iter()
+            .iter()
             .map(|l| select_rows(leaf.clone(), indices(l.iter().map(|&r| subset.local(r)).collect(), &device)));
         let centre = gathered.next().expect("the picked rows");
         let tv = total_variation(centre, gathered, TvNorm::PerVoxel) * (weight / count as f32);
+        let slots = indices(subset.rows().iter().map(|&r| rows.slot(r)).collect(), &device);
         match leaf.grad(&tv.backward()) {
-            Some(g) => assign_rows(into, rows, g, IndexingUpdateOp::Add),
+            Some(g) => assign_rows(into, slots, g, IndexingUpdateOp::Add),
             None => into,
         }
     }
@@ -78,15 +149,18 @@ impl StyleField {
 /// The autodiff leaf of a chunk is only the rows its samples touch (a grid
 /// has millions of rows, a chunk touches a few percent of them); their
 /// gradients are added into one full-size buffer.
+/// The gradient lands in the step's buffer (`rows`: the samples' rows must
+/// have been added to it).
 pub fn chunked_gradient(
     sh: &Tensor<2>,
     samples: &FrozenSamples,
     background: [f32; 3],
     chunk: usize,
+    rows: &StepRows,
     loss_of: &dyn Fn(Tensor<2>, usize, usize) -> Tensor<1>,
 ) -> Tensor<2> {
     let device = sh.device();
-    let mut total = Tensor::zeros(sh.dims(), &device);
+    let mut total = rows.zeros(&device);
     let mut subset = RowSubset::default();
     for (start, len) in chunk_ranges(samples.num_rays, chunk) {
         let mut part = samples.range(start, len);
@@ -95,15 +169,15 @@ pub fn chunked_gradient(
             *r = subset.local(*r);
         }
         let ft = part.upload(&device);
-        let rows = indices(subset.rows().to_vec(), &device);
-        let leaf = select_rows(sh.clone(), rows.clone()).autodiff().require_grad();
+        let leaf = select_rows(sh.clone(), indices(subset.rows().to_vec(), &device)).autodiff().require_grad();
         let rgb = frozen::render_colour(leaf.clone(), &ft, background);
         let loss = loss_of(rgb, start, len);
         // A chunk whose rays all miss the scene renders the background: no graph, no gradient.
         if loss.is_tracked()
             && let Some(g) = leaf.grad(&loss.backward())
         {
-            total = assign_rows(total, rows, g, IndexingUpdateOp::Add);
+            let slots = indices(subset.rows().iter().map(|&r| rows.slot(r)).collect(), &device);
+            total = assign_rows(total, slots, g, IndexingUpdateOp::Add);
         }
     }
     total

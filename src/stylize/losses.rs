@@ -5,6 +5,7 @@ use burn::tensor::Tensor;
 use burn::tensor::module::avg_pool2d;
 use burn::tensor::ops::AvgPoolOptions;
 
+use crate::stylize::config::ColourNorm;
 use crate::vgg::features::{nearest_by_dot, normalise_rows};
 
 /// Mean over rows of the cosine distance 1 - cos(a_i, b_i).
@@ -42,12 +43,24 @@ pub fn patch_means(image: Tensor<4>, patch: usize) -> Tensor<2> {
 }
 
 /// Paper eq. 9: squared colour distance between rendered patch means and
-/// their matched reference patch colours, averaged over the positions whose
-/// `mask` is 1 (unmatched and background positions carry 0).
-pub fn colour_loss(patches: Tensor<2>, targets: Tensor<2>, mask: Tensor<2>) -> Tensor<1> {
-    let count = mask.clone().sum().clamp_min(1.0);
+/// their matched reference patch colours at the positions whose `mask`
+/// (`[positions, 1]`) is 1 (unmatched and background positions carry 0):
+/// summed over channels and averaged over the masked positions
+/// (`Matched`), or averaged over channels and all positions (`AllPositions`).
+pub fn colour_loss(patches: Tensor<2>, targets: Tensor<2>, mask: Tensor<2>, norm: ColourNorm) -> Tensor<1> {
+    let [n, c] = patches.dims();
     let d = patches - targets;
-    ((d.clone() * d).sum_dim(1) * mask).sum() / count
+    let masked = ((d.clone() * d).sum_dim(1) * mask.clone()).sum();
+    match norm {
+        ColourNorm::Matched => masked / mask.sum().clamp_min(1.0),
+        ColourNorm::AllPositions => masked / (n * c).max(1) as f32,
+    }
+}
+
+/// `[positions, 1]`: 1 where a patch's channel mean is at most `white`, 0
+/// where it is brighter (background, for L_color's mask).
+pub fn not_white(patches: Tensor<2>, white: f32) -> Tensor<2> {
+    patches.mean_dim(1).lower_equal_elem(white).float()
 }
 
 /// Image total variation: mean squared difference of horizontal neighbours

@@ -14,7 +14,7 @@ use crate::eval::render_path::render_frames;
 use crate::field::checkpoint::{self, Checkpoint};
 use crate::field::march::Marcher;
 use crate::reference::case::ReferenceCase;
-use crate::reference::registration::{RegistrationFile, lift_references, register_case};
+use crate::reference::registration::{PhotoRun, RegistrationFile, lift_references, register_case};
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::ColourTransfer;
@@ -173,7 +173,8 @@ fn registration(
 ) -> Result<RegistrationFile> {
     match &job.registration {
         None => {
-            let (file, report) = register_case(ck, dataset, case, &job.config.register, warnings.progress())?;
+            let photo = PhotoRun::of(ck, &job.photo);
+            let (file, report) = register_case(ck, &photo, dataset, case, &job.config.register, warnings.progress())?;
             warnings.extend_reported(report.warnings);
             Ok(file)
         }
@@ -182,7 +183,7 @@ fn registration(
             let file = RegistrationFile::load(path)?;
             // The case's references as they are now, to compare with the file's.
             let (_, references) = lift_references(ck, &Marcher::new(&ck.grid), dataset, case, warnings)?;
-            file.check_matches(dataset, &references, path)?;
+            file.check_matches(&PhotoRun::of(ck, &job.photo), dataset, &references, path)?;
             if file.params != job.config.register {
                 warnings.push(format!(
                     "{} was registered with {:?}, not this config's [register] {:?}: using the file",

@@ -20,13 +20,13 @@ use crate::field::checkpoint::CheckpointMeta;
 use crate::field::frozen::{self, FrozenSamples};
 use crate::field::grid::RadianceGrid;
 use crate::field::march::{BlockOccupancy, MarchParams, Marcher};
-use crate::field::optim::log_lerp;
+use crate::field::optim::{Rmsprop, log_lerp};
 use crate::reference::registration::RegistrationFile;
 use crate::scene::camera::{Camera, NdcParams, Ray, to_ndc};
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::ColourTransfer;
-use crate::stylize::config::StylizeConfig;
-use crate::stylize::field::{StyleField, chunked_gradient};
+use crate::stylize::config::{LrSchedule, StylizeConfig, WhiteOn};
+use crate::stylize::field::{StepRows, StyleField, chunked_gradient};
 use crate::stylize::losses;
 use crate::stylize::styles::is_background;
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
@@ -81,8 +81,9 @@ pub struct Stylizer<'a> {
     view_samples: Vec<Option<FrozenSamples>>,
     /// Sample lists of the reference views.
     pub reference_samples: Vec<FrozenSamples>,
-    /// (reference, pixel) of every reference pixel that sees the scene.
-    reference_hits: Vec<(usize, usize)>,
+    /// (reference, pixel) of every reference pixel L_ref uses: those that
+    /// see the scene, or all of them (`loss.reference_misses`).
+    reference_pixels: Vec<(usize, usize)>,
     registration: RegistrationFile,
     /// All registered pixels: (view, pixel, colour).
     pub registered: Vec<(u32, u32, [f32; 3])>,
@@ -91,6 +92,8 @@ pub struct Stylizer<'a> {
     /// ARF: the photos are recoloured with this before the refit.
     pub colour_transfer: Option<ColourTransfer>,
     pub curve: Vec<CurvePoint>,
+    /// Optimiser steps taken so far, over all phases (the shared rate schedule).
+    optimiser_steps: usize,
 }
 
 /// What the image epochs are guided by: the TCM template (Ref-NPR), the
@@ -113,11 +116,12 @@ impl<'a> Stylizer<'a> {
         colour_transfer: Option<ColourTransfer>,
     ) -> Self {
         let field = StyleField::new(grid);
-        let reference_hits = registration
+        let misses = job.config.loss.reference_misses;
+        let reference_pixels = registration
             .references
             .iter()
             .enumerate()
-            .flat_map(|(r, p)| p.hits.iter().enumerate().filter(|(_, h)| **h).map(move |(i, _)| (r, i)))
+            .flat_map(|(r, p)| p.hits.iter().enumerate().filter(move |(_, h)| **h || misses).map(move |(i, _)| (r, i)))
             .collect();
         let ad = job.backend.autodiff_device();
         let mut st = Stylizer {
@@ -134,12 +138,13 @@ impl<'a> Stylizer<'a> {
             device: job.backend.device(),
             view_samples: vec![None; dataset.train.len()],
             reference_samples: Vec::new(),
-            reference_hits,
+            reference_pixels,
             registered: registration.registered_pixels(),
             registration,
             registered_samples: None,
             colour_transfer,
             curve: Vec::new(),
+            optimiser_steps: 0,
         };
         st.reference_samples = st.registration.references.iter().map(|p| st.march_camera(&p.camera)).collect();
         st
@@ -186,7 +191,9 @@ impl<'a> Stylizer<'a> {
             0
         };
         let smooth_start = s.image_epochs - smooth_epochs.min(s.image_epochs);
-        self.field.reset_optimiser();
+        if !self.cfg.optim.keep_state {
+            self.field.reset_optimiser();
+        }
         let started = std::time::Instant::now();
         let mut smooth_started = None;
         progress.event(Event::Start { phase: Phase::ImageEpochs, done: 0, total: total_steps });
@@ -224,7 +231,7 @@ impl<'a> Stylizer<'a> {
 
     /// One image step on training view `v`: the image losses by deferred
     /// back-propagation, L_ref on a batch of pseudo-rays (Ref-NPR), SH TV,
-    /// one RMSprop step.
+    /// one RMSprop step on the rows the step touches (or on all rows).
     fn image_step(
         &mut self,
         v: usize,
@@ -235,22 +242,31 @@ impl<'a> Stylizer<'a> {
     ) -> Result<CurvePoint> {
         let s = &self.cfg.schedule;
         let mut rng = step_rng(self.cfg.seed, Stream::ImageStep, step);
+        let samples = self.view_samples(v);
+        let pseudo = if self.job.method == Method::RefNpr { self.pseudo_ray_batch(&mut rng) } else { Vec::new() };
+        let tv = self.field.tv_rows(self.cfg.loss.tv_sh, self.cfg.loss.tv_fraction, &mut rng);
+        let mut rows = self.field.step_rows(self.cfg.optim.sparse);
+        rows.add(&samples.corner_rows);
+        pseudo.iter().for_each(|(p, _)| rows.add(&p.corner_rows));
+        tv.iter().for_each(|l| rows.add(l));
         let (grad, parts) = self.image_gradient(
             v,
+            &samples,
+            &rows,
             &guidance.guides[v],
             guidance.template.as_ref(),
             guidance.style_bank.as_ref(),
             smooth,
         )?;
-        let (ref_grad, ref_loss) =
-            if self.job.method == Method::RefNpr { self.reference_gradient(&mut rng) } else { (None, 0.0) };
+        drop(samples);
+        let (ref_grad, ref_loss) = self.reference_gradient(pseudo, &rows);
         let grad = match ref_grad {
             Some(g) => grad + g,
             None => grad,
         };
-        let grad = self.with_tv(grad, &mut rng);
-        let lr = log_lerp(s.lr, s.lr_final, step as f32 / total_steps.max(1) as f32);
-        self.field.rmsprop(grad, lr, s.rmsprop_beta, s.eps);
+        let grad = self.field.add_tv_gradient(grad, self.cfg.loss.tv_sh, &tv, &rows);
+        let lr = self.learning_rate(log_lerp(s.lr, s.lr_final, step as f32 / total_steps.max(1) as f32));
+        self.optimiser_step(grad, &rows, lr);
         Ok(CurvePoint {
             phase: if smooth { StepKind::Smooth } else { StepKind::Image },
             step,
@@ -262,6 +278,27 @@ impl<'a> Stylizer<'a> {
             image_tv: parts.image_tv,
         })
     }
+
+    /// The rate of the next optimiser step: `per_phase` is the phase's own
+    /// (the refit's, or the image epochs' decay); the shared schedule
+    /// decays over all steps taken so far.
+    fn learning_rate(&self, per_phase: f32) -> f32 {
+        let s = &self.cfg.schedule;
+        match s.lr_schedule {
+            LrSchedule::PerPhase => per_phase,
+            LrSchedule::Shared => {
+                log_lerp(s.lr, s.lr_final, (self.optimiser_steps as f32 / s.lr_decay_steps as f32).min(1.0))
+            }
+        }
+    }
+
+    fn optimiser_step(&mut self, grad: Tensor<2>, rows: &StepRows, lr: f32) {
+        let s = &self.cfg.schedule;
+        let opt = Rmsprop { beta: s.rmsprop_beta, eps: s.eps, start: self.cfg.optim.rms_init };
+        self.field.rmsprop(grad, rows, lr, opt);
+        self.optimiser_steps += 1;
+    }
+
     fn view_samples(&self, v: usize) -> Cow<'_, FrozenSamples> {
         match &self.view_samples[v] {
             Some(s) => Cow::Borrowed(s),
@@ -331,7 +368,9 @@ impl<'a> Stylizer<'a> {
         let s = &self.cfg.schedule;
         let steps = (s.ray_epochs as f64 * rays.len() as f64 / s.ray_batch as f64).ceil() as usize;
         progress.event(Event::Start { phase: Phase::Refit, done: 0, total: steps });
-        self.field.reset_optimiser();
+        if !self.cfg.optim.keep_state {
+            self.field.reset_optimiser();
+        }
         for step in 0..steps {
             let mse = self.refit_step(step, &rays, &colours);
             let message = format!("mse {mse:.5} psnr {:.2}", psnr_from_mse(mse));
@@ -350,15 +389,25 @@ impl<'a> Stylizer<'a> {
         let batch_rays: Vec<Ray> = picks.iter().map(|&i| rays[i]).collect();
         let target = floats(picks.iter().flat_map(|&i| colours[i]).collect(), [picks.len(), 3], &self.device);
         let samples = self.march_rays(&batch_rays);
-        let (grad, mse) = self.mse_gradient(&samples, target, 1.0);
-        let grad = self.with_tv(grad, &mut rng);
-        self.field.rmsprop(grad, s.lr_refit, s.rmsprop_beta, s.eps);
+        let tv = self.field.tv_rows(self.cfg.loss.tv_sh, self.cfg.loss.tv_fraction, &mut rng);
+        let mut rows = self.field.step_rows(self.cfg.optim.sparse);
+        rows.add(&samples.corner_rows);
+        tv.iter().for_each(|l| rows.add(l));
+        let (grad, mse) = self.mse_gradient(&samples, &rows, target, 1.0);
+        let grad = self.field.add_tv_gradient(grad, self.cfg.loss.tv_sh, &tv, &rows);
+        self.optimiser_step(grad, &rows, self.learning_rate(s.lr_refit));
         mse
     }
 
     /// `weight` x the mean squared error of the rays' colours to `target`
     /// (`[rays, 3]`): its SH gradient and its value.
-    fn mse_gradient(&self, samples: &FrozenSamples, target: Tensor<2>, weight: f32) -> (Tensor<2>, f32) {
+    fn mse_gradient(
+        &self,
+        samples: &FrozenSamples,
+        rows: &StepRows,
+        target: Tensor<2>,
+        weight: f32,
+    ) -> (Tensor<2>, f32) {
         let scale = weight / (3.0 * samples.num_rays.max(1) as f32);
         let value = std::cell::Cell::new(0.0f32);
         let grad = chunked_gradient(
@@ -366,6 +415,7 @@ impl<'a> Stylizer<'a> {
             samples,
             self.background,
             self.cfg.render_chunk,
+            rows,
             &|rgb, start, len| {
                 let d = rgb - target.clone().narrow(0, start, len);
                 let loss = (d.clone() * d).sum() * scale;
@@ -374,10 +424,6 @@ impl<'a> Stylizer<'a> {
             },
         );
         (grad, value.get())
-    }
-
-    fn with_tv(&self, grad: Tensor<2>, rng: &mut ChaCha8Rng) -> Tensor<2> {
-        self.field.add_tv_gradient(grad, self.cfg.loss.tv_sh, self.cfg.loss.tv_fraction, rng)
     }
 
     /// Caches sample lists up to the configured memory: first the
@@ -399,18 +445,19 @@ impl<'a> Stylizer<'a> {
         }
     }
 
-    /// The pseudo-ray loss's gradient (λ_r times the mean squared error of
-    /// a batch of reference pixels plus that of a batch of registered pixels).
-    fn reference_gradient(&self, rng: &mut ChaCha8Rng) -> (Option<Tensor<2>>, f32) {
+    /// A step's pseudo-rays for L_ref: a batch of reference pixels and a
+    /// batch of registered pixels, each with its target colours (none when
+    /// L_ref is off).
+    fn pseudo_ray_batch(&self, rng: &mut ChaCha8Rng) -> Vec<(FrozenSamples, Vec<f32>)> {
         let l = &self.cfg.loss;
         if !self.cfg.ablation.use_reference_loss || l.reference <= 0.0 {
-            return (None, 0.0);
+            return Vec::new();
         }
         let mut groups: Vec<(FrozenSamples, Vec<f32>)> = Vec::new();
         // Reference pixels that see the scene.
         let mut samples = FrozenSamples::default();
         let mut target = Vec::new();
-        let hits = &self.reference_hits;
+        let hits = &self.reference_pixels;
         if !hits.is_empty() {
             let picks: Vec<(usize, usize)> = if l.reference_rays >= hits.len() {
                 hits.clone()
@@ -439,11 +486,17 @@ impl<'a> Stylizer<'a> {
             };
             groups.push((samples, picks.iter().flat_map(|&i| self.registered[i].2).collect()));
         }
+        groups
+    }
+
+    /// The pseudo-ray loss's gradient on the step's rows (λ_r times the mean
+    /// squared error of each group of `pseudo_ray_batch`) and its value.
+    fn reference_gradient(&self, groups: Vec<(FrozenSamples, Vec<f32>)>, rows: &StepRows) -> (Option<Tensor<2>>, f32) {
         let mut total: Option<Tensor<2>> = None;
         let mut value = 0.0;
         for (samples, target) in groups {
             let target = floats(target, [samples.num_rays, 3], &self.device);
-            let (g, v) = self.mse_gradient(&samples, target, l.reference);
+            let (g, v) = self.mse_gradient(&samples, rows, target, self.cfg.loss.reference);
             value += v;
             total = Some(match total {
                 None => g,
@@ -455,19 +508,21 @@ impl<'a> Stylizer<'a> {
 
     /// Deferred back-propagation of the image losses of view `v`: the
     /// gradient with respect to the SH rows, and the loss values.
+    #[allow(clippy::too_many_arguments)]
     fn image_gradient(
         &self,
         v: usize,
+        samples: &FrozenSamples,
+        rows: &StepRows,
         guide: &ViewGuide,
         template: Option<&Template>,
         style_bank: Option<&Tensor<2>>,
         smooth: bool,
     ) -> Result<(Tensor<2>, ImageLosses)> {
-        let samples = self.view_samples(v);
         let cam = &self.dataset.train[v].camera;
         let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
         // 1. Full image, no autodiff.
-        let rgb = frozen::render_plain(&self.field.grid.sh, &samples, self.background, self.cfg.render_chunk);
+        let rgb = frozen::render_plain(&self.field.grid.sh, samples, self.background, self.cfg.render_chunk);
         // 2. Image losses on a leaf image, gradient with respect to the image.
         let image = image_tensor(&rgb, w, h, &self.ad).require_grad();
         let (loss, parts) = self.image_loss(image.clone(), guide, template, style_bank, smooth)?;
@@ -477,9 +532,10 @@ impl<'a> Stylizer<'a> {
         // 3. Chunked re-render with autodiff, injecting the image gradient.
         let grad = chunked_gradient(
             &self.field.grid.sh,
-            &samples,
+            samples,
             self.background,
             self.cfg.render_chunk,
+            rows,
             &|rgb, start, len| (rgb * g.clone().narrow(0, start, len)).sum(),
         );
         Ok((grad, parts))
@@ -518,11 +574,12 @@ impl<'a> Stylizer<'a> {
                     }
                 }
                 if let (Some(c), false) = (&guide.colour, smooth) {
-                    let loss = losses::colour_loss(
-                        losses::patch_means(image, tcm::COLOUR_PATCH),
-                        c.target.clone(),
-                        c.mask.clone(),
-                    );
+                    let patches = losses::patch_means(image, tcm::COLOUR_PATCH);
+                    let mask = match l.colour_white_on {
+                        WhiteOn::Content => c.mask.clone(),
+                        WhiteOn::Render => c.mask.clone() * losses::not_white(patches.clone().detach(), l.colour_white),
+                    };
+                    let loss = losses::colour_loss(patches, c.target.clone(), mask, l.colour_norm);
                     parts.colour = scalar(loss.clone().inner());
                     total = total + loss * l.colour;
                 }
@@ -571,13 +628,9 @@ impl<'a> Stylizer<'a> {
             let matches = template.map(|t| t.matches(&raw, self.cfg.search_chunk)).unwrap_or_default();
             let colour = match (template, colour_desc) {
                 (Some(t), Some(d)) => {
-                    let c = t.colour_targets(
-                        d,
-                        &content,
-                        self.cfg.loss.colour_max_distance,
-                        self.cfg.loss.colour_white,
-                        self.cfg.search_chunk,
-                    );
+                    let l = &self.cfg.loss;
+                    let white = (l.colour_white_on == WhiteOn::Content).then_some(l.colour_white);
+                    let c = t.colour_targets(d, &content, l.colour_max_distance, white, self.cfg.search_chunk);
                     matched += c.matched_fraction / n as f32;
                     Some(c)
                 }

@@ -115,14 +115,15 @@ impl Template {
 
     /// Eq. 9's targets for a view: for each relu5 position, the matched
     /// reference patch's style colour, and a mask that is 0 where the match's
-    /// cosine distance exceeds `max_distance` or the view's own content patch
-    /// is near white (> `white` in every channel: background).
+    /// cosine distance exceeds `max_distance` or, when `white` is given, the
+    /// view's own content patch is near white (> `white` in every channel:
+    /// background).
     pub fn colour_targets(
         &self,
         colour_descriptors: Tensor<2>,
         content: &Image,
         max_distance: f32,
-        white: f32,
+        white: Option<f32>,
         chunk: usize,
     ) -> ColourTargets {
         let device = colour_descriptors.device();
@@ -132,7 +133,7 @@ impl Template {
             .iter()
             .enumerate()
             .map(|(i, &s)| {
-                let background = own[i * 3..i * 3 + 3].iter().all(|&v| v > white);
+                let background = white.is_some_and(|w| own[i * 3..i * 3 + 3].iter().all(|&v| v > w));
                 if 1.0 - s <= max_distance && !background { 1.0 } else { 0.0 }
             })
             .collect();

@@ -10,7 +10,7 @@ use anyhow::{Context, Result};
 
 use crate::eval::photoreal::evaluate;
 use crate::eval::render_path::{self, PathKind};
-use crate::eval::stylization::{self, EvalJob, StylizationEval};
+use crate::eval::stylization::{self, EvalJob, RobustnessViews, StylizationEval};
 use crate::field::checkpoint::{self, Checkpoint};
 use crate::photo::config::TrainConfig;
 use crate::photo::run::{TrainMetrics, run_training};
@@ -184,6 +184,7 @@ fn evaluate_demo(
         case,
         gt: Some(twin.clone()),
         robustness: 0,
+        robustness_views: RobustnessViews::Near,
         backend,
         data: None,
         robustness_epochs: None,
