@@ -675,6 +675,47 @@ fn ablation_configs_each_change_one_switch() {
     assert_eq!(seen, 5);
 }
 
+/// The authors' preset differs from the defaults only in the keys it
+/// names, and a key the config does not know is refused there as anywhere.
+#[test]
+fn authors_preset_changes_only_the_keys_it_names() {
+    fn leaves(v: &toml::Value, prefix: &str, out: &mut Vec<(String, toml::Value)>) {
+        match v {
+            toml::Value::Table(t) => t.iter().for_each(|(k, v)| leaves(v, &format!("{prefix}{k}."), out)),
+            _ => out.push((prefix.trim_end_matches('.').to_string(), v.clone())),
+        }
+    }
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/stylize_authors.toml");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let preset = StylizeConfig::from_file(&path).unwrap();
+    let mut named = Vec::new();
+    leaves(&text.parse::<toml::Table>().unwrap().into(), "", &mut named);
+    let (mut ours, mut theirs) = (Vec::new(), Vec::new());
+    leaves(&toml::Value::try_from(StylizeConfig::default()).unwrap(), "", &mut ours);
+    leaves(&toml::Value::try_from(&preset).unwrap(), "", &mut theirs);
+    assert_eq!(ours.len(), theirs.len());
+    let differing: Vec<&String> = ours.iter().zip(&theirs).filter(|(a, b)| a != b).map(|(a, _)| &a.0).collect();
+    assert!(!differing.is_empty(), "the preset is the defaults");
+    for key in &differing {
+        assert!(named.iter().any(|(k, _)| k == *key), "{key} differs from the default but the preset does not name it");
+    }
+    // Every named value is the one the preset config holds.
+    for (key, value) in &named {
+        let (_, held) = theirs.iter().find(|(k, _)| k == key).unwrap_or_else(|| panic!("{key} is no config key"));
+        let same = match (held, value) {
+            (toml::Value::Float(a), toml::Value::Float(b)) => (a - b).abs() <= 1e-6 * b.abs().max(1.0),
+            (a, b) => a == b,
+        };
+        assert!(same, "{key}: the file says {value}, the config holds {held}");
+    }
+    let bad = format!("{text}\nlearning_rate = 0.1\n");
+    let err = StylizeConfig::from_toml_str(&bad, "stylize_authors.toml").unwrap_err();
+    assert!(
+        format!("{err:#}").contains("learning_rate") && format!("{err:#}").contains("stylize_authors.toml"),
+        "{err:#}"
+    );
+}
+
 /// Robustness (paper supplementary A) restylizes with the run's own method,
 /// from the run's own render: an ARF run is restylized by ARF, a Ref-NPR run
 /// by Ref-NPR. The restylized Ref-NPR field reproduces the run's path renders
