@@ -325,7 +325,7 @@ fn parameter_sweep() {
 fn register_command_writes_its_outputs_and_survives_a_camera_looking_away() {
     use refnpr::photo::config::TrainConfig;
     use refnpr::reference::case::ReferenceCase;
-    use refnpr::reference::registration::{PhotoRun, RegistrationFile, run_register, write_reference_skeleton};
+    use refnpr::reference::registration::{RegistrationFile, run_register, write_reference_skeleton};
     use refnpr::scene::data::{self, DatasetKind};
     let t = common::TempDir::new("r3-cmd");
     let opts = SceneOptions { seed: 3, size: 32, num_train: 8, num_val: 1, num_test: 1 };
@@ -354,9 +354,7 @@ fn register_command_writes_its_outputs_and_survives_a_camera_looking_away() {
     std::fs::copy(scene_dir.join("stylized/train/r_2.png"), case.join("style.png")).unwrap();
     let loaded = ReferenceCase::load(&case).unwrap();
     let out = t.path().join("r3");
-    let report =
-        run_register(&ck, &PhotoRun::of(&ck, &run), &ds, &loaded, &Default::default(), &out, 3, &refnpr::Quiet)
-            .unwrap();
+    let report = run_register(&ck, &ds, &loaded, &Default::default(), &out, 3, &refnpr::Quiet).unwrap();
     assert_eq!(report.fraction_per_view.len(), 8);
     assert!(
         report.fraction_per_view[2] > 0.9,
@@ -381,17 +379,8 @@ fn register_command_writes_its_outputs_and_survives_a_camera_looking_away() {
                 intrinsics = { width = 32, height = 32, fx = 40.0, fy = 40.0, cx = 16.0, cy = 16.0 }\n";
     std::fs::write(case.join("reference.toml"), away).unwrap();
     let loaded = ReferenceCase::load(&case).unwrap();
-    let report = run_register(
-        &ck,
-        &PhotoRun::of(&ck, &run),
-        &ds,
-        &loaded,
-        &Default::default(),
-        &t.path().join("r3-away"),
-        0,
-        &refnpr::Quiet,
-    )
-    .unwrap();
+    let report =
+        run_register(&ck, &ds, &loaded, &Default::default(), &t.path().join("r3-away"), 0, &refnpr::Quiet).unwrap();
     assert_eq!(report.registered_pixels, 0);
     assert!(report.warnings.iter().any(|w| w.contains("sees nothing")), "{:?}", report.warnings);
 }

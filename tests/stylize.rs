@@ -19,7 +19,7 @@ use refnpr::field::optim::{RmsStart, Rmsprop};
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
 use refnpr::scene::data::{self, procedural};
 use refnpr::stylize::config::{ColourNorm, StylizeConfig};
-use refnpr::stylize::field::{StepRows, StyleField, chunked_gradient};
+use refnpr::stylize::field::{ShTv, StepRows, StyleField, chunked_gradient};
 use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::tcm::Template;
 use refnpr::stylize::{Method, StylizeJob, losses};
@@ -169,11 +169,12 @@ fn sh_tv_gradient_matches_finite_differences() {
     let (weight, fraction, seed) = (0.5f32, 0.3f32, 11u64);
     let lists = field.tv_rows(weight, fraction, &mut ChaCha8Rng::seed_from_u64(seed));
     let dense = StepRows::dense(n);
-    let grad = to_vec(field.add_tv_gradient(dense.zeros(&field.grid.device()), weight, &lists, &dense));
+    let tv_mean = ShTv { weight, per_voxel: false, per_channel: false };
+    let grad = to_vec(field.add_tv_gradient(dense.zeros(&field.grid.device()), &tv_mean, &lists, &dense));
     // Sparse: the same gradient, in a buffer with one row per touched row.
     let mut sparse = StepRows::sparse(n);
     lists.iter().for_each(|l| sparse.add(l));
-    let local = to_vec(field.add_tv_gradient(sparse.zeros(&field.grid.device()), weight, &lists, &sparse));
+    let local = to_vec(field.add_tv_gradient(sparse.zeros(&field.grid.device()), &tv_mean, &lists, &sparse));
     assert!(sparse.len() < n);
     for r in 0..n {
         for c in 0..3 {
@@ -221,6 +222,27 @@ fn sh_tv_gradient_matches_finite_differences() {
         }
     }
     assert!(checked >= 100);
+    // svox2's form: weight per picked voxel (no mean), each channel on its own.
+    let svox2 = ShTv { weight, per_voxel: true, per_channel: true };
+    let grad2 = to_vec(field.add_tv_gradient(dense.zeros(&field.grid.device()), &svox2, &lists, &dense));
+    let tv2 = |sh: &[f32]| -> f64 {
+        let per_channel = |r: usize, c: usize| -> f64 {
+            let sq: f64 = (0..3).map(|a| (sh[neighbour(r, a) * 3 + c] as f64 - sh[r * 3 + c] as f64).powi(2)).sum();
+            (sq + 1e-9).sqrt()
+        };
+        picks.iter().map(|&r| (0..3).map(|c| per_channel(r, c)).sum::<f64>()).sum::<f64>() * weight as f64
+    };
+    for &r in picks.iter().take(10) {
+        for c in 0..3 {
+            let i = r * 3 + c;
+            let fd = common::central_difference(&sh0, i, 1e-3, tv2) as f32;
+            assert!(
+                (fd - grad2[i]).abs() < 2e-3 * fd.abs().max(1e-2),
+                "svox2 TV row {r} channel {c}: {fd} vs {}",
+                grad2[i]
+            );
+        }
+    }
     // Rows far from every pick get nothing.
     let touched: std::collections::HashSet<usize> =
         picks.iter().flat_map(|&r| [r, neighbour(r, 0), neighbour(r, 1), neighbour(r, 2)]).collect();
@@ -476,24 +498,16 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
 #[test]
 fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
     use refnpr::reference::case::ReferenceCase;
-    use refnpr::reference::registration::{PhotoRun, run_register};
+    use refnpr::reference::registration::run_register;
     let t = TempDir::new("stylize-registration");
     let photo = tiny_photo_run(t.path(), 60, 6);
     let scene = t.path().join("scene");
     let case = write_case(t.path(), &scene, 0, "");
     let (ck, ds) = checkpoint::load_run(&photo, None, &common::device()).unwrap();
     let r3 = t.path().join("r3");
-    let registered = run_register(
-        &ck,
-        &PhotoRun::of(&ck, &photo),
-        &ds,
-        &ReferenceCase::load(&case).unwrap(),
-        &Default::default(),
-        &r3,
-        0,
-        &refnpr::Quiet,
-    )
-    .unwrap();
+    let registered =
+        run_register(&ck, &ds, &ReferenceCase::load(&case).unwrap(), &Default::default(), &r3, 0, &refnpr::Quiet)
+            .unwrap();
     assert!(registered.registered_pixels > 0);
 
     let mut config = quick_config(1);
@@ -585,10 +599,14 @@ fn bad_input_is_refused_with_the_file_named() {
     let err = StylizeConfig::from_toml_str("[schedule]\nsmooth_fraction = 2.0\n", "my.toml").unwrap_err();
     assert!(format!("{err:#}").contains("smooth_fraction"), "{err:#}");
 
-    let shipped =
-        StylizeConfig::from_file(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/configs/stylize.toml")))
-            .unwrap();
-    assert_eq!(shipped, StylizeConfig::default());
+    let path = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/configs/stylize.toml"));
+    assert_eq!(StylizeConfig::from_file(path).unwrap(), StylizeConfig::default());
+    // ... and names every key.
+    let (mut all, mut named) = (Vec::new(), Vec::new());
+    leaves(&toml::Value::try_from(StylizeConfig::default()).unwrap(), "", &mut all);
+    leaves(&std::fs::read_to_string(path).unwrap().parse::<toml::Table>().unwrap().into(), "", &mut named);
+    let missing: Vec<&String> = all.iter().map(|(k, _)| k).filter(|k| !named.iter().any(|(n, _)| n == *k)).collect();
+    assert!(missing.is_empty(), "configs/stylize.toml does not name {missing:?}");
 }
 
 /// The ARF baseline runs on the same machinery: density frozen, its NNFM
@@ -675,16 +693,18 @@ fn ablation_configs_each_change_one_switch() {
     assert_eq!(seen, 5);
 }
 
+/// The (key path, value) leaves of a TOML tree.
+fn leaves(v: &toml::Value, prefix: &str, out: &mut Vec<(String, toml::Value)>) {
+    match v {
+        toml::Value::Table(t) => t.iter().for_each(|(k, v)| leaves(v, &format!("{prefix}{k}."), out)),
+        _ => out.push((prefix.trim_end_matches('.').to_string(), v.clone())),
+    }
+}
+
 /// The authors' preset differs from the defaults only in the keys it
 /// names, and a key the config does not know is refused there as anywhere.
 #[test]
 fn authors_preset_changes_only_the_keys_it_names() {
-    fn leaves(v: &toml::Value, prefix: &str, out: &mut Vec<(String, toml::Value)>) {
-        match v {
-            toml::Value::Table(t) => t.iter().for_each(|(k, v)| leaves(v, &format!("{prefix}{k}."), out)),
-            _ => out.push((prefix.trim_end_matches('.').to_string(), v.clone())),
-        }
-    }
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("configs/stylize_authors.toml");
     let text = std::fs::read_to_string(&path).unwrap();
     let preset = StylizeConfig::from_file(&path).unwrap();

@@ -460,8 +460,7 @@ fn run_register(
 ) -> Result<()> {
     let (ck, dataset) = load_run(&inputs.photo, inputs.data)?;
     let case = ReferenceCase::load(&inputs.reference)?;
-    let photo = registration::PhotoRun::of(&ck, &inputs.photo);
-    let r = registration::run_register(&ck, &photo, &dataset, &case, params, out, overlays, progress)?;
+    let r = registration::run_register(&ck, &dataset, &case, params, out, overlays, progress)?;
     println!(
         "registered {} pixels ({:.1}% of surface pixels) over {} views; depth {:.2}s, dictionary {:.3}s, registration {:.3}s",
         r.registered_pixels,

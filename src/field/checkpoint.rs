@@ -47,6 +47,8 @@ struct Payload {
 
 /// A loaded checkpoint.
 pub struct Checkpoint {
+    /// The file it was loaded from.
+    pub source: PathBuf,
     pub meta: CheckpointMeta,
     pub grid: RadianceGrid,
     /// RMSprop running averages [rows, 1] and [rows, 3B] (zeros if absent;
@@ -140,7 +142,7 @@ pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<
             },
         )
     };
-    Ok(Checkpoint { meta, grid, opt_density, opt_sh })
+    Ok(Checkpoint { source: path, meta, grid, opt_density, opt_sh })
 }
 
 /// A checkpoint (without optimiser state: for rendering and R³) and the

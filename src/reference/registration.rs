@@ -66,23 +66,23 @@ pub fn write_reference_skeleton(ck: &Checkpoint, dataset: &Dataset, view: &ViewS
     Ok(out.join("content.png"))
 }
 
-/// Which photoreal run a registration was made on: its folder (as given)
-/// and a fingerprint of its grid (geometry, step, density), which decides.
+/// Which photoreal run a registration was made on: its checkpoint file and
+/// a fingerprint of its grid (geometry, step, density), which decides.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct PhotoRun {
-    pub dir: PathBuf,
+    pub file: PathBuf,
     pub fingerprint: u64,
 }
 
 impl PhotoRun {
-    pub fn of(ck: &Checkpoint, dir: &Path) -> Self {
-        Self { dir: dir.to_path_buf(), fingerprint: ck.fingerprint() }
+    pub fn of(ck: &Checkpoint) -> Self {
+        Self { file: ck.source.clone(), fingerprint: ck.fingerprint() }
     }
 }
 
 impl std::fmt::Display for PhotoRun {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{} (grid fingerprint {:016x})", self.dir.display(), self.fingerprint)
+        write!(f, "{} (grid fingerprint {:016x})", self.file.display(), self.fingerprint)
     }
 }
 
@@ -167,7 +167,7 @@ impl RegistrationFile {
                 source.display(),
                 self.photo,
                 photo,
-                photo.dir.display()
+                photo.file.display()
             );
         }
         let names: Vec<&str> = self.views.iter().map(|v| v.name.as_str()).collect();
@@ -247,7 +247,6 @@ pub fn lift_references(
 /// training view. Returns the pseudo-rays and the report (no files written).
 pub fn register_case(
     ck: &Checkpoint,
-    photo: &PhotoRun,
     dataset: &Dataset,
     case: &ReferenceCase,
     params: &RegisterParams,
@@ -280,7 +279,7 @@ pub fn register_case(
     };
     let register_seconds = t2.elapsed().as_secs_f64();
     let file = RegistrationFile {
-        photo: photo.clone(),
+        photo: PhotoRun::of(ck),
         params: *params,
         references: ref_pixels,
         views: dataset
@@ -312,7 +311,6 @@ pub fn register_case(
 /// content render) for the first `overlays` training views.
 pub fn run_register(
     ck: &Checkpoint,
-    photo: &PhotoRun,
     dataset: &Dataset,
     case: &ReferenceCase,
     params: &RegisterParams,
@@ -321,7 +319,7 @@ pub fn run_register(
     progress: &dyn Progress,
 ) -> Result<RegisterReport> {
     files::create_dir(out)?;
-    let (file, report) = register_case(ck, photo, dataset, case, params, progress)?;
+    let (file, report) = register_case(ck, dataset, case, params, progress)?;
     file.save(&out.join(REGISTRATION_FILE))?;
     files::write_json(&out.join("register.json"), &report)?;
     let dir = out.join("overlays");

@@ -119,6 +119,12 @@ pub struct LossConfig {
     /// Total variation on the SH grid, on a random `tv_fraction` of the voxels per step.
     pub tv_sh: f32,
     pub tv_fraction: f32,
+    /// `tv_sh` weighs each picked voxel's TV (svox2: its gradient is
+    /// `tv_sh` x the unit difference direction however many are picked)
+    /// instead of the mean over the picked voxels.
+    pub tv_sh_per_voxel: bool,
+    /// TV per colour channel (svox2) instead of over the three channels together.
+    pub tv_sh_per_channel: bool,
 }
 
 impl Default for LossConfig {
@@ -139,6 +145,8 @@ impl Default for LossConfig {
             image_tv: 1.0,
             tv_sh: 1e-3,
             tv_fraction: 0.1,
+            tv_sh_per_voxel: false,
+            tv_sh_per_channel: false,
         }
     }
 }

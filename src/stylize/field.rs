@@ -62,6 +62,15 @@ impl StepRows {
     }
 }
 
+/// How the SH total variation is weighed (see `LossConfig::tv_sh*`).
+#[derive(Debug, Clone, Copy)]
+pub struct ShTv {
+    pub weight: f32,
+    /// `weight` per picked voxel (svox2) instead of over their mean.
+    pub per_voxel: bool,
+    pub per_channel: bool,
+}
+
 /// The grid being stylized: SH degree 0, density frozen, RMSprop state.
 pub struct StyleField {
     pub grid: RadianceGrid,
@@ -119,11 +128,13 @@ impl StyleField {
             .collect()
     }
 
-    /// `into` plus the gradient of `weight` x the SH total variation over
-    /// the rows `lists` of `tv_rows` (mean over the picked rows of
-    /// sqrt(sum of squared differences to the +x/+y/+z neighbours)). Adding
-    /// into the caller's gradient saves a buffer and a sum per step.
-    pub fn add_tv_gradient(&self, into: Tensor<2>, weight: f32, lists: &[Vec<i32>], rows: &StepRows) -> Tensor<2> {
+    /// `into` plus the gradient of the SH total variation over the rows
+    /// `lists` of `tv_rows`: `tv.weight` x the mean (or, `per_voxel`, the
+    /// sum) over the picked rows of sqrt(sum of squared differences to the
+    /// +x/+y/+z neighbours), over all channels together or per channel.
+    /// Adding into the caller's gradient saves a buffer and a sum per step.
+    pub fn add_tv_gradient(&self, into: Tensor<2>, tv: &ShTv, lists: &[Vec<i32>], rows: &StepRows) -> Tensor<2> {
+        let weight = tv.weight;
         let Some(count) = lists.first().map(Vec::len).filter(|&c| c > 0 && weight > 0.0) else { return into };
         // Leaf = the rows involved (the picked rows and their neighbours), local indices.
         let subset = RowSubset::of(self.grid.num_rows(), &lists.concat());
@@ -134,7 +145,9 @@ impl StyleField {
             .iter()
             .map(|l| select_rows(leaf.clone(), indices(l.iter().map(|&r| subset.local(r)).collect(), &device)));
         let centre = gathered.next().expect("the picked rows");
-        let tv = total_variation(centre, gathered, TvNorm::PerVoxel) * (weight / count as f32);
+        let norm = if tv.per_channel { TvNorm::PerChannel } else { TvNorm::PerVoxel };
+        let scale = if tv.per_voxel { weight } else { weight / count as f32 };
+        let tv = total_variation(centre, gathered, norm) * scale;
         let slots = indices(subset.rows().iter().map(|&r| rows.slot(r)).collect(), &device);
         match leaf.grad(&tv.backward()) {
             Some(g) => assign_rows(into, slots, g, IndexingUpdateOp::Add),

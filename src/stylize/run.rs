@@ -173,8 +173,7 @@ fn registration(
 ) -> Result<RegistrationFile> {
     match &job.registration {
         None => {
-            let photo = PhotoRun::of(ck, &job.photo);
-            let (file, report) = register_case(ck, &photo, dataset, case, &job.config.register, warnings.progress())?;
+            let (file, report) = register_case(ck, dataset, case, &job.config.register, warnings.progress())?;
             warnings.extend_reported(report.warnings);
             Ok(file)
         }
@@ -183,7 +182,7 @@ fn registration(
             let file = RegistrationFile::load(path)?;
             // The case's references as they are now, to compare with the file's.
             let (_, references) = lift_references(ck, &Marcher::new(&ck.grid), dataset, case, warnings)?;
-            file.check_matches(&PhotoRun::of(ck, &job.photo), dataset, &references, path)?;
+            file.check_matches(&PhotoRun::of(ck), dataset, &references, path)?;
             if file.params != job.config.register {
                 warnings.push(format!(
                     "{} was registered with {:?}, not this config's [register] {:?}: using the file",

@@ -26,7 +26,7 @@ use crate::scene::camera::{Camera, NdcParams, Ray, to_ndc};
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::ColourTransfer;
 use crate::stylize::config::{LrSchedule, StylizeConfig, WhiteOn};
-use crate::stylize::field::{StepRows, StyleField, chunked_gradient};
+use crate::stylize::field::{ShTv, StepRows, StyleField, chunked_gradient};
 use crate::stylize::losses;
 use crate::stylize::styles::is_background;
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
@@ -264,7 +264,7 @@ impl<'a> Stylizer<'a> {
             Some(g) => grad + g,
             None => grad,
         };
-        let grad = self.field.add_tv_gradient(grad, self.cfg.loss.tv_sh, &tv, &rows);
+        let grad = self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows);
         let lr = self.learning_rate(log_lerp(s.lr, s.lr_final, step as f32 / total_steps.max(1) as f32));
         self.optimiser_step(grad, &rows, lr);
         Ok(CurvePoint {
@@ -290,6 +290,11 @@ impl<'a> Stylizer<'a> {
                 log_lerp(s.lr, s.lr_final, (self.optimiser_steps as f32 / s.lr_decay_steps as f32).min(1.0))
             }
         }
+    }
+
+    fn sh_tv(&self) -> ShTv {
+        let l = &self.cfg.loss;
+        ShTv { weight: l.tv_sh, per_voxel: l.tv_sh_per_voxel, per_channel: l.tv_sh_per_channel }
     }
 
     fn optimiser_step(&mut self, grad: Tensor<2>, rows: &StepRows, lr: f32) {
@@ -394,7 +399,7 @@ impl<'a> Stylizer<'a> {
         rows.add(&samples.corner_rows);
         tv.iter().for_each(|l| rows.add(l));
         let (grad, mse) = self.mse_gradient(&samples, &rows, target, 1.0);
-        let grad = self.field.add_tv_gradient(grad, self.cfg.loss.tv_sh, &tv, &rows);
+        let grad = self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows);
         self.optimiser_step(grad, &rows, self.learning_rate(s.lr_refit));
         mse
     }
