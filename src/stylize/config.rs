@@ -78,7 +78,7 @@ impl Default for ScheduleConfig {
             smooth_fraction: 0.25,
             lr: 0.1,
             lr_final: 0.01,
-            lr_schedule: LrSchedule::PerPhase,
+            lr_schedule: LrSchedule::Shared,
             lr_decay_steps: 250_000,
             rmsprop_beta: 0.95,
             eps: 1e-8,
@@ -144,9 +144,9 @@ impl Default for LossConfig {
             smooth_feature: 0.2,
             image_tv: 1.0,
             tv_sh: 1e-3,
-            tv_fraction: 0.1,
-            tv_sh_per_voxel: false,
-            tv_sh_per_channel: false,
+            tv_fraction: 0.01,
+            tv_sh_per_voxel: true,
+            tv_sh_per_channel: true,
         }
     }
 }
@@ -168,7 +168,7 @@ pub struct OptimConfig {
 
 impl Default for OptimConfig {
     fn default() -> Self {
-        Self { rms_init: RmsStart::Zero, sparse: false, keep_state: false }
+        Self { rms_init: RmsStart::FirstGrad, sparse: true, keep_state: true }
     }
 }
 
