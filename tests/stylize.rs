@@ -167,9 +167,9 @@ fn sh_tv_gradient_matches_finite_differences() {
     let n = grid.num_rows();
     let field = StyleField::new(grid);
     let (weight, fraction, seed) = (0.5f32, 0.3f32, 11u64);
-    let lists = field.tv_rows(weight, fraction, &mut ChaCha8Rng::seed_from_u64(seed));
+    let tv_mean = ShTv { weight, fraction, per_voxel: false, per_channel: false };
+    let lists = field.tv_rows(&tv_mean, &mut ChaCha8Rng::seed_from_u64(seed));
     let dense = StepRows::dense(n);
-    let tv_mean = ShTv { weight, per_voxel: false, per_channel: false };
     let grad = to_vec(field.add_tv_gradient(dense.zeros(&field.grid.device()), &tv_mean, &lists, &dense));
     // Sparse: the same gradient, in a buffer with one row per touched row.
     let mut sparse = StepRows::sparse(n);
@@ -223,7 +223,7 @@ fn sh_tv_gradient_matches_finite_differences() {
     }
     assert!(checked >= 100);
     // svox2's form: weight per picked voxel (no mean), each channel on its own.
-    let svox2 = ShTv { weight, per_voxel: true, per_channel: true };
+    let svox2 = ShTv { weight, fraction, per_voxel: true, per_channel: true };
     let grad2 = to_vec(field.add_tv_gradient(dense.zeros(&field.grid.device()), &svox2, &lists, &dense));
     let tv2 = |sh: &[f32]| -> f64 {
         let per_channel = |r: usize, c: usize| -> f64 {

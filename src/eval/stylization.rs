@@ -297,7 +297,7 @@ pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<St
         gt_psnr_occluded: truth.and_then(|t| t.occluded),
         occluded_fraction: truth.map(|t| t.occluded_fraction),
         stability: stability(&frames, tolerance(&ck)),
-        speckle: speckle_fraction(frames.iter().map(|f| (&f.image, &f.image.rgb, &f.points))),
+        speckle: speckle_fraction(frames.iter().map(|f| speckle_of(f, &f.image.rgb)).fold((0, 0), add_counts)),
         speckle_test: truth.map(|t| t.speckle),
         gt_speckle: truth.map(|t| t.gt_speckle),
         robustness_psnr,
@@ -343,17 +343,18 @@ struct TruthPsnrs {
     gt_speckle: f32,
 }
 
-/// The speckled fraction of the surface pixels of a set of images: each
-/// item is (the render, the colours to measure - its own or the ground
-/// truth's at the same camera - and the render's surface points).
-fn speckle_fraction<'a>(images: impl Iterator<Item = (&'a Image, &'a Vec<f32>, &'a Vec<Option<Vec3>>)>) -> f32 {
-    let (mut speckled, mut counted) = (0, 0);
-    for (image, rgb, points) in images {
-        let mask: Vec<bool> = points.iter().map(Option::is_some).collect();
-        let (s, n) = metrics::speckle(rgb, image.width, image.height, &mask);
-        speckled += s;
-        counted += n;
-    }
+/// (speckled, counted) pixels of `rgb` over the surface pixels of `render`:
+/// `rgb` is the render's own colours or the ground truth's at its camera.
+fn speckle_of(render: &SurfaceRender, rgb: &[f32]) -> (usize, usize) {
+    let mask: Vec<bool> = render.points.iter().map(Option::is_some).collect();
+    metrics::speckle(rgb, render.image.width, render.image.height, &mask)
+}
+
+fn add_counts(a: (usize, usize), b: (usize, usize)) -> (usize, usize) {
+    (a.0 + b.0, a.1 + b.1)
+}
+
+fn speckle_fraction((speckled, counted): (usize, usize)) -> f32 {
     speckled as f32 / counted.max(1) as f32
 }
 
@@ -375,7 +376,7 @@ fn ground_truth_psnrs(
     );
     let refs: Vec<SurfaceRender> = case.cameras(dataset)?.iter().map(|c| render_surface(ck, c)).collect();
     let (mut all, mut occ, mut surface, mut hidden) = ((0.0f64, 0usize), (0.0f64, 0usize), 0usize, 0usize);
-    let mut renders = Vec::new();
+    let (mut speckle, mut gt_speckle) = ((0, 0), (0, 0));
     for (v, t) in gt.test.iter().enumerate() {
         ensure!(
             t.camera.intrinsics.width == dataset.test[v].camera.intrinsics.width,
@@ -390,14 +391,15 @@ fn ground_truth_psnrs(
         if let Some((s, n)) = psnr_masked(&r.image.rgb, &t.rgb, &unseen) {
             occ = (occ.0 + s, occ.1 + n);
         }
-        renders.push(r);
+        speckle = add_counts(speckle, speckle_of(&r, &r.image.rgb));
+        gt_speckle = add_counts(gt_speckle, speckle_of(&r, &t.rgb));
     }
     Ok(TruthPsnrs {
         all: metrics::psnr_from_mse((all.0 / all.1 as f64) as f32),
         occluded: (occ.1 > 0).then(|| metrics::psnr_from_mse((occ.0 / occ.1 as f64) as f32)),
         occluded_fraction: hidden as f32 / surface.max(1) as f32,
-        speckle: speckle_fraction(renders.iter().map(|r| (&r.image, &r.image.rgb, &r.points))),
-        gt_speckle: speckle_fraction(renders.iter().zip(&gt.test).map(|(r, t)| (&r.image, &t.rgb, &r.points))),
+        speckle: speckle_fraction(speckle),
+        gt_speckle: speckle_fraction(gt_speckle),
     })
 }
 

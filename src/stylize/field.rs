@@ -3,7 +3,9 @@
 //! only those the step touched); and the chunked gradient of a loss over
 //! rendered rays (the second half of deferred back-propagation).
 
-use burn::tensor::{IndexingUpdateOp, Tensor};
+use std::cell::Cell;
+
+use burn::tensor::{IndexingUpdateOp, Int, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
@@ -28,9 +30,14 @@ impl StepRows {
     }
 
     pub fn sparse(num_rows: usize) -> Self {
-        let mut s = RowSubset::default();
-        s.clear(num_rows);
-        Self { num_rows, touched: Some(s) }
+        Self::sparse_reusing(RowSubset::default(), num_rows)
+    }
+
+    /// Sparse, in a subset kept from an earlier step: clearing it resets
+    /// only the rows that step set, not a grid-sized map.
+    fn sparse_reusing(mut subset: RowSubset, num_rows: usize) -> Self {
+        subset.clear(num_rows);
+        Self { num_rows, touched: Some(subset) }
     }
 
     /// Marks `rows` as touched (nothing to do when dense).
@@ -56,16 +63,23 @@ impl StepRows {
         self.touched.as_ref().map_or(row, |s| s.local(row))
     }
 
+    /// The buffer rows of `grid_rows`, as an index tensor.
+    pub fn slots(&self, grid_rows: &[i32], device: &burn::tensor::Device) -> Tensor<1, Int> {
+        indices(grid_rows.iter().map(|&r| self.slot(r)).collect(), device)
+    }
+
     /// An empty gradient buffer.
     pub fn zeros(&self, device: &burn::tensor::Device) -> Tensor<2> {
         Tensor::zeros([self.len(), 3], device)
     }
 }
 
-/// How the SH total variation is weighed (see `LossConfig::tv_sh*`).
+/// The SH total variation's settings (see `LossConfig::tv_sh*`).
 #[derive(Debug, Clone, Copy)]
 pub struct ShTv {
     pub weight: f32,
+    /// Fraction of the rows picked per step.
+    pub fraction: f32,
     /// `weight` per picked voxel (svox2) instead of over their mean.
     pub per_voxel: bool,
     pub per_channel: bool,
@@ -77,6 +91,9 @@ pub struct StyleField {
     rms: Tensor<2>,
     /// Per row, its +x / +y / +z neighbour row (itself when empty): SH TV.
     neighbours: [Vec<i32>; 3],
+    /// The sparse steps' row subset, kept between steps (see `RowSubset`);
+    /// a `Cell` so a step can take it while the step's samples borrow the stylizer.
+    touched: Cell<RowSubset>,
 }
 
 impl StyleField {
@@ -88,40 +105,49 @@ impl StyleField {
             (0..rows).map(|row| grid.neighbour_row(row, axis).unwrap_or(row as i32)).collect()
         });
         let rms = Tensor::zeros([rows, 3], &grid.device());
-        Self { grid, rms, neighbours }
+        Self { grid, rms, neighbours, touched: Cell::default() }
     }
 
     pub fn reset_optimiser(&mut self) {
         self.rms = Tensor::zeros([self.grid.num_rows(), 3], &self.grid.device());
     }
 
-    /// The rows a step will update: all, or (sparse) none yet.
-    pub fn step_rows(&self, sparse: bool) -> StepRows {
+    /// The rows a step will update: all (dense), or those of its samples'
+    /// corners and its TV rows (sparse).
+    pub fn step_rows(&self, sparse: bool, corner_rows: &[&[i32]], tv: &[Vec<i32>]) -> StepRows {
         let n = self.grid.num_rows();
-        if sparse { StepRows::sparse(n) } else { StepRows::dense(n) }
+        if !sparse {
+            return StepRows::dense(n);
+        }
+        let mut rows = StepRows::sparse_reusing(self.touched.take(), n);
+        corner_rows.iter().for_each(|r| rows.add(r));
+        tv.iter().for_each(|r| rows.add(r));
+        rows
     }
 
     /// One RMSprop step on the SH rows of `rows` (density untouched); `grad`
     /// is the step's gradient buffer.
-    pub fn rmsprop(&mut self, grad: Tensor<2>, rows: &StepRows, lr: f32, opt: Rmsprop) {
-        match &rows.touched {
+    pub fn rmsprop(&mut self, grad: Tensor<2>, rows: StepRows, lr: f32, opt: Rmsprop) {
+        match rows.touched {
             None => opt.step_dense(&mut self.grid.sh, &mut self.rms, grad, lr),
-            Some(s) if !s.rows().is_empty() => {
-                let ids = indices(s.rows().to_vec(), &self.grid.device());
-                opt.step_rows(&mut self.grid.sh, &mut self.rms, &ids, grad, lr);
+            Some(s) => {
+                if !s.rows().is_empty() {
+                    let ids = indices(s.rows().to_vec(), &self.grid.device());
+                    opt.step_rows(&mut self.grid.sh, &mut self.rms, &ids, grad, lr);
+                }
+                self.touched.set(s);
             }
-            Some(_) => {}
         }
     }
 
-    /// The rows of one SH TV term: a random `fraction` of the rows and, per
-    /// axis, their +x/+y/+z neighbours (empty when `weight` is 0).
-    pub fn tv_rows(&self, weight: f32, fraction: f32, rng: &mut ChaCha8Rng) -> Vec<Vec<i32>> {
+    /// The rows of one SH TV term: a random `tv.fraction` of the rows and,
+    /// per axis, their +x/+y/+z neighbours (empty when `tv.weight` is 0).
+    pub fn tv_rows(&self, tv: &ShTv, rng: &mut ChaCha8Rng) -> Vec<Vec<i32>> {
         let n = self.grid.num_rows();
-        if weight <= 0.0 || n == 0 {
+        if tv.weight <= 0.0 || n == 0 {
             return Vec::new();
         }
-        let count = ((n as f32 * fraction).ceil() as usize).clamp(1, n);
+        let count = ((n as f32 * tv.fraction).ceil() as usize).clamp(1, n);
         let core: Vec<i32> = (0..count).map(|_| rng.random_range(0..n) as i32).collect();
         std::iter::once(core.clone())
             .chain(self.neighbours.iter().map(|nb| core.iter().map(|&r| nb[r as usize]).collect()))
@@ -148,7 +174,7 @@ impl StyleField {
         let norm = if tv.per_channel { TvNorm::PerChannel } else { TvNorm::PerVoxel };
         let scale = if tv.per_voxel { weight } else { weight / count as f32 };
         let tv = total_variation(centre, gathered, norm) * scale;
-        let slots = indices(subset.rows().iter().map(|&r| rows.slot(r)).collect(), &device);
+        let slots = rows.slots(subset.rows(), &device);
         match leaf.grad(&tv.backward()) {
             Some(g) => assign_rows(into, slots, g, IndexingUpdateOp::Add),
             None => into,
@@ -161,9 +187,8 @@ impl StyleField {
 /// memory is bounded by the chunk (the second half of deferred back-propagation).
 /// The autodiff leaf of a chunk is only the rows its samples touch (a grid
 /// has millions of rows, a chunk touches a few percent of them); their
-/// gradients are added into one full-size buffer.
-/// The gradient lands in the step's buffer (`rows`: the samples' rows must
-/// have been added to it).
+/// gradients are added into the step's buffer (`rows`: grid-sized, or one
+/// row per touched row, the samples' rows among them).
 pub fn chunked_gradient(
     sh: &Tensor<2>,
     samples: &FrozenSamples,
@@ -189,8 +214,7 @@ pub fn chunked_gradient(
         if loss.is_tracked()
             && let Some(g) = leaf.grad(&loss.backward())
         {
-            let slots = indices(subset.rows().iter().map(|&r| rows.slot(r)).collect(), &device);
-            total = assign_rows(total, slots, g, IndexingUpdateOp::Add);
+            total = assign_rows(total, rows.slots(subset.rows(), &device), g, IndexingUpdateOp::Add);
         }
     }
     total

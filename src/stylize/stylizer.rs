@@ -244,11 +244,10 @@ impl<'a> Stylizer<'a> {
         let mut rng = step_rng(self.cfg.seed, Stream::ImageStep, step);
         let samples = self.view_samples(v);
         let pseudo = if self.job.method == Method::RefNpr { self.pseudo_ray_batch(&mut rng) } else { Vec::new() };
-        let tv = self.field.tv_rows(self.cfg.loss.tv_sh, self.cfg.loss.tv_fraction, &mut rng);
-        let mut rows = self.field.step_rows(self.cfg.optim.sparse);
-        rows.add(&samples.corner_rows);
-        pseudo.iter().for_each(|(p, _)| rows.add(&p.corner_rows));
-        tv.iter().for_each(|l| rows.add(l));
+        let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
+        let corners: Vec<&[i32]> =
+            std::iter::once(&*samples).chain(pseudo.iter().map(|(p, _)| p)).map(|p| &p.corner_rows[..]).collect();
+        let rows = self.field.step_rows(self.cfg.optim.sparse, &corners, &tv);
         let (grad, parts) = self.image_gradient(
             v,
             &samples,
@@ -266,7 +265,7 @@ impl<'a> Stylizer<'a> {
         };
         let grad = self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows);
         let lr = self.learning_rate(log_lerp(s.lr, s.lr_final, step as f32 / total_steps.max(1) as f32));
-        self.optimiser_step(grad, &rows, lr);
+        self.optimiser_step(grad, rows, lr);
         Ok(CurvePoint {
             phase: if smooth { StepKind::Smooth } else { StepKind::Image },
             step,
@@ -294,10 +293,15 @@ impl<'a> Stylizer<'a> {
 
     fn sh_tv(&self) -> ShTv {
         let l = &self.cfg.loss;
-        ShTv { weight: l.tv_sh, per_voxel: l.tv_sh_per_voxel, per_channel: l.tv_sh_per_channel }
+        ShTv {
+            weight: l.tv_sh,
+            fraction: l.tv_fraction,
+            per_voxel: l.tv_sh_per_voxel,
+            per_channel: l.tv_sh_per_channel,
+        }
     }
 
-    fn optimiser_step(&mut self, grad: Tensor<2>, rows: &StepRows, lr: f32) {
+    fn optimiser_step(&mut self, grad: Tensor<2>, rows: StepRows, lr: f32) {
         let s = &self.cfg.schedule;
         let opt = Rmsprop { beta: s.rmsprop_beta, eps: s.eps, start: self.cfg.optim.rms_init };
         self.field.rmsprop(grad, rows, lr, opt);
@@ -394,13 +398,12 @@ impl<'a> Stylizer<'a> {
         let batch_rays: Vec<Ray> = picks.iter().map(|&i| rays[i]).collect();
         let target = floats(picks.iter().flat_map(|&i| colours[i]).collect(), [picks.len(), 3], &self.device);
         let samples = self.march_rays(&batch_rays);
-        let tv = self.field.tv_rows(self.cfg.loss.tv_sh, self.cfg.loss.tv_fraction, &mut rng);
-        let mut rows = self.field.step_rows(self.cfg.optim.sparse);
-        rows.add(&samples.corner_rows);
-        tv.iter().for_each(|l| rows.add(l));
+        let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
+        let rows = self.field.step_rows(self.cfg.optim.sparse, &[&samples.corner_rows], &tv);
         let (grad, mse) = self.mse_gradient(&samples, &rows, target, 1.0);
         let grad = self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows);
-        self.optimiser_step(grad, &rows, self.learning_rate(s.lr_refit));
+        let lr = self.learning_rate(s.lr_refit);
+        self.optimiser_step(grad, rows, lr);
         mse
     }
 
@@ -459,15 +462,15 @@ impl<'a> Stylizer<'a> {
             return Vec::new();
         }
         let mut groups: Vec<(FrozenSamples, Vec<f32>)> = Vec::new();
-        // Reference pixels that see the scene.
+        // Reference pixels (those that see the scene, or all: `reference_misses`).
         let mut samples = FrozenSamples::default();
         let mut target = Vec::new();
-        let hits = &self.reference_pixels;
-        if !hits.is_empty() {
-            let picks: Vec<(usize, usize)> = if l.reference_rays >= hits.len() {
-                hits.clone()
+        let pixels = &self.reference_pixels;
+        if !pixels.is_empty() {
+            let picks: Vec<(usize, usize)> = if l.reference_rays >= pixels.len() {
+                pixels.clone()
             } else {
-                (0..l.reference_rays).map(|_| hits[rng.random_range(0..hits.len())]).collect()
+                (0..l.reference_rays).map(|_| pixels[rng.random_range(0..pixels.len())]).collect()
             };
             for r in 0..self.reference_samples.len() {
                 let ids: Vec<usize> = picks.iter().filter(|p| p.0 == r).map(|p| p.1).collect();
