@@ -663,6 +663,90 @@ fn arf_baseline_lowers_its_matching_loss() {
     assert_eq!(to_vec(a.grid.density.clone()), to_vec(b.grid.density.clone()), "density changed");
 }
 
+/// ARF as the released code runs it, piece by piece: the 2x2 half-size
+/// image (plain and tensor) against hand-computed values, the field's
+/// recolouring against the affine map it applies, the colour statistics
+/// with and without the background, and a run whose second transfer gives
+/// the training renders' scene pixels the style's mean colour.
+#[test]
+fn arf_as_the_authors_run_it() {
+    use refnpr::stylize::colour_transfer::ColourTransfer;
+    use refnpr::stylize::config::TransferPixels;
+    use refnpr::stylize::styles::colour_stats;
+    use refnpr::util::image::Image;
+    let d = common::device();
+    // 3x2 image (odd width: the last column is dropped); channel 0 holds 0..6.
+    let rgb: Vec<f32> = (0..6).flat_map(|i| [i as f32, 1.0, 2.0 * i as f32]).collect();
+    let half = Image::new(3, 2, rgb.clone()).half();
+    assert_eq!((half.width, half.height), (1, 1));
+    assert_eq!(half.rgb, vec![(0.0 + 1.0 + 3.0 + 4.0) / 4.0, 1.0, 4.0]);
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let img = Image::new(6, 4, (0..72).map(|_| rng.random::<f32>()).collect());
+    let pooled = to_vec(losses::half(img.tensor(&d)));
+    let want = to_vec(img.half().tensor(&d));
+    assert!(pooled.iter().zip(&want).all(|(a, b)| (a - b).abs() < 1e-6), "{pooled:?} vs {want:?}");
+
+    // Recolouring the field: every row's colour c = C0 s + 0.5 becomes M c + b.
+    let mut field = StyleField::new(random_grid(3));
+    let before = to_vec(field.grid.sh.clone());
+    let tf = ColourTransfer { matrix: [[0.8, 0.1, 0.0], [0.2, 0.5, 0.1], [0.0, -0.3, 1.2]], offset: [0.1, -0.05, 0.2] };
+    field.apply_colour_transfer(&tf);
+    let after = to_vec(field.grid.sh.clone());
+    let c0 = refnpr::scene::sh::C0;
+    for (s0, s1) in before.chunks_exact(3).zip(after.chunks_exact(3)) {
+        let want = tf.apply_unclamped([0, 1, 2].map(|i| c0 * s0[i] + 0.5));
+        for i in 0..3 {
+            assert!((c0 * s1[i] + 0.5 - want[i]).abs() < 1e-5, "{s0:?} -> {s1:?}, want colour {want:?}");
+        }
+    }
+
+    // Statistics: half the pixels are the white background.
+    let px: Vec<f32> = [[0.2f32, 0.4, 0.6], [1.0; 3], [0.4, 0.4, 0.4], [1.0; 3]].concat();
+    let scene = colour_stats(&[&px], [1.0; 3], TransferPixels::Scene).unwrap();
+    let all = colour_stats(&[&px], [1.0; 3], TransferPixels::All).unwrap();
+    assert_eq!((scene.count, all.count), (2, 4));
+    assert!((scene.mean[0] - 0.3).abs() < 1e-6 && (all.mean[0] - 0.65).abs() < 1e-6, "{scene:?} {all:?}");
+
+    // A run with the released code's ARF: the second transfer is reported,
+    // and afterwards the training renders' scene pixels have the style's mean.
+    let t = TempDir::new("stylize-arf-authors");
+    let photo = tiny_photo_run(t.path(), 120, 6);
+    let case = write_case(t.path(), &t.path().join("scene"), 1, "");
+    let out = t.path().join("arf");
+    let mut cfg = quick_config(1);
+    cfg.schedule.ray_epochs = 0.5;
+    // Without the photos' recolouring only the second transfer moves the
+    // field's colours towards the style (the photos' mean is far from it).
+    cfg.arf.colour_transfer = false;
+    cfg.arf.post_transfer = true;
+    cfg.arf.half_resolution = true;
+    let mut j = job(&photo, &case, &out, cfg, Method::Arf);
+    j.render_test = false;
+    // A style image of its own: the style statistics are then over its
+    // non-background pixels, which the test can recompute.
+    j.style = Some(case.join("style.png"));
+    let report = run_stylize(&j, &refnpr::Quiet).unwrap();
+    assert!(report.post_colour_transfer.is_some(), "the second transfer is reported");
+    let ds = data::load(&t.path().join("scene"), &Default::default()).unwrap();
+    let ck = checkpoint::load_with(&out, &d, false).unwrap();
+    let renders: Vec<Vec<f32>> = ds
+        .train
+        .iter()
+        .map(|v| {
+            let r = render::render_view(&ck.grid, &v.camera, None, &ck.meta.config.march, ck.meta.background, 8192);
+            r.image.rgb
+        })
+        .collect();
+    let renders: Vec<&[f32]> = renders.iter().map(|r| &r[..]).collect();
+    let got = colour_stats(&renders, ck.meta.background, TransferPixels::Scene).unwrap().mean;
+    let style = data::composite_over(&image::open(case.join("style.png")).unwrap().to_rgba32f(), ck.meta.background);
+    let style_mean = colour_stats(&[&style], ck.meta.background, TransferPixels::Scene).unwrap().mean;
+    eprintln!("ARF after its second transfer: scene mean {got:?}, style mean {style_mean:?}");
+    for c in 0..3 {
+        assert!((got[c] - style_mean[c]).abs() < 0.03, "channel {c}: renders {got:?} vs style {style_mean:?}");
+    }
+}
+
 /// Each ablation config of scripts/compare.sh parses and turns off exactly
 /// the one thing its name says.
 #[test]

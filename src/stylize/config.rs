@@ -200,7 +200,18 @@ impl Default for AblationConfig {
     }
 }
 
-/// The ARF baseline's losses.
+/// Which pixels ARF's colour statistics are taken over.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TransferPixels {
+    /// The pixels that show the scene: photo and render pixels not of the
+    /// background colour, the reference's hit pixels.
+    Scene,
+    /// Every pixel, background included (the released code).
+    All,
+}
+
+/// The ARF baseline's losses and colour transfers.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ArfConfig {
@@ -211,11 +222,31 @@ pub struct ArfConfig {
     /// Recolour the training photos to the style image's colour mean and
     /// covariance before the refit (ARF's preprocessing).
     pub colour_transfer: bool,
+    /// Which pixels the colour statistics of both transfers are taken over.
+    pub transfer_pixels: TransferPixels,
+    /// Also apply the photos' recolouring to the field's colour before the
+    /// refit (the released code's `grid.apply_ct`), so the refit starts there.
+    pub transfer_grid: bool,
+    /// After the image epochs, recolour the field so that its training-view
+    /// renders get the style's colour statistics (the released code).
+    pub post_transfer: bool,
+    /// VGG sees renders and contents at half resolution (2x2 means, which is
+    /// what a 0.5x bilinear resize computes) and the style image resized to
+    /// the views' long side, then halved (the released code).
+    pub half_resolution: bool,
 }
 
 impl Default for ArfConfig {
     fn default() -> Self {
-        Self { nnfm: 1.0, content: 5e-3, colour_transfer: true }
+        Self {
+            nnfm: 1.0,
+            content: 5e-3,
+            colour_transfer: true,
+            transfer_pixels: TransferPixels::Scene,
+            transfer_grid: false,
+            post_transfer: false,
+            half_resolution: false,
+        }
     }
 }
 

@@ -12,8 +12,10 @@ use rand_chacha::ChaCha8Rng;
 use crate::field::frozen::{self, FrozenSamples};
 use crate::field::grid::RadianceGrid;
 use crate::field::optim::{Rmsprop, RowSubset, TvNorm, total_variation};
+use crate::scene::sh;
+use crate::stylize::colour_transfer::ColourTransfer;
 use crate::util::chunk_ranges;
-use crate::util::tensor::{assign_rows, indices, select_rows};
+use crate::util::tensor::{assign_rows, floats, indices, select_rows};
 
 /// The rows one optimiser step updates, and where each one's gradient sits
 /// in the step's gradient buffer: every row of the grid (dense; the buffer
@@ -106,6 +108,19 @@ impl StyleField {
         });
         let rms = Tensor::zeros([rows, 3], &grid.device());
         Self { grid, rms, neighbours, touched: Cell::default() }
+    }
+
+    /// Recolours the field with an affine colour map: a colour
+    /// `c = C0 s + 0.5` becomes `M c + b` (before the renderer's clamp), so
+    /// `s -> M s + (M 0.5 + b - 0.5) / C0` (the released code's
+    /// `grid.apply_ct`, for DC-only colour).
+    pub fn apply_colour_transfer(&mut self, tf: &ColourTransfer) {
+        let device = self.grid.device();
+        let transposed: Vec<f32> = (0..3).flat_map(|j| (0..3).map(move |i| tf.matrix[i][j])).collect();
+        let shift: Vec<f32> =
+            (0..3).map(|i| (0.5 * tf.matrix[i].iter().sum::<f32>() + tf.offset[i] - 0.5) / sh::C0).collect();
+        self.grid.sh =
+            self.grid.sh.clone().matmul(floats(transposed, [3, 3], &device)) + floats(shift, [1, 3], &device);
     }
 
     pub fn reset_optimiser(&mut self) {

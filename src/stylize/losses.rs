@@ -33,6 +33,12 @@ pub fn content_loss(render: Tensor<2>, content: Tensor<2>) -> Tensor<1> {
     mse(render, content) / (FEATURE_UNIT * FEATURE_UNIT)
 }
 
+/// `[1, 3, H, W]` -> `[1, 3, H/2, W/2]`, each pixel the mean of a 2x2
+/// block: a 0.5x bilinear resize (without align_corners) computes exactly this.
+pub fn half(image: Tensor<4>) -> Tensor<4> {
+    avg_pool2d(image, AvgPoolOptions::new([2, 2]).with_stride([2, 2]))
+}
+
 /// Mean colour of each `patch` x `patch` block of an image `[1, 3, H, W]`,
 /// as `[(H/patch) * (W/patch), 3]` in row-major patch order (trailing pixels
 /// beyond a multiple of `patch` are left out, as VGG's relu5 grid does).

@@ -138,6 +138,8 @@ pub struct StylizeReport {
     pub colour_matched_fraction: f32,
     /// ARF: the affine recolouring applied to the photos before the refit.
     pub colour_transfer: Option<ColourTransfer>,
+    /// ARF with `arf.post_transfer`: the recolouring applied to the field after the image epochs.
+    pub post_colour_transfer: Option<ColourTransfer>,
     /// Seconds per phase: registration, refit, content (renders, features, TCM), image_epochs, smooth_update.
     pub seconds: BTreeMap<String, f64>,
     pub total_seconds: f64,

@@ -18,7 +18,7 @@ use crate::reference::registration::{PhotoRun, RegistrationFile, lift_references
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::ColourTransfer;
-use crate::stylize::styles::{arf_colour_transfer, read_styles};
+use crate::stylize::styles::{arf_colour_transfer, read_styles, style_colour_stats};
 use crate::stylize::stylizer::Stylizer;
 use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
 use crate::stylize::{Method, StepKind, StylizeJob, StylizeReport};
@@ -58,8 +58,18 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
 
     let (styles, colour_transfer) = style_side(job, &case, &dataset, &registration, ck.meta.background, &mut warnings)?;
 
+    // ARF's second transfer aims at the same style statistics as the first.
+    let post_style = if job.method == Method::Arf && cfg.arf.post_transfer {
+        let own_style = job.style.is_some();
+        Some(style_colour_stats(&styles[0], &registration, own_style, ck.meta.background, cfg.arf.transfer_pixels)?)
+    } else {
+        None
+    };
     let photo_meta = ck.meta.clone();
     let mut st = Stylizer::new(job, &dataset, ck.grid, &photo_meta, registration, colour_transfer);
+    if let (true, Some(tf)) = (job.method == Method::Arf && cfg.arf.transfer_grid, colour_transfer) {
+        st.field.apply_colour_transfer(&tf);
+    }
     let t = Instant::now();
     st.refit(progress)?;
     seconds.insert("refit".to_string(), t.elapsed().as_secs_f64());
@@ -73,6 +83,15 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     seconds.insert("image_epochs".to_string(), image_secs);
     seconds.insert("smooth_update".to_string(), smooth_secs);
     progress.event(Event::PhaseDone { phase: Phase::ImageEpochs, seconds: image_secs + smooth_secs });
+
+    let post_colour_transfer = match &post_style {
+        Some(style) => {
+            let tf = st.post_colour_transfer(style, cfg.arf.transfer_pixels)?;
+            progress.info(format!("ARF colour transfer after stylizing: {:?} + {:?}", tf.matrix, tf.offset));
+            Some(tf)
+        }
+        None => None,
+    };
 
     save_outputs(&st, &photo_meta, started, &job.out)?;
     let report = StylizeReport {
@@ -88,6 +107,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         registered_fraction,
         colour_matched_fraction: colour_matched,
         colour_transfer: st.colour_transfer,
+        post_colour_transfer,
         total_seconds: started.elapsed().as_secs_f64(),
         seconds,
         peak_rss_mb: peak_rss_mb(),
@@ -119,7 +139,9 @@ fn style_side(
     if job.method != Method::Arf || !job.config.arf.colour_transfer {
         return Ok((styles, None));
     }
-    let tf = arf_colour_transfer(dataset, &styles[0], registration, own_style.is_some(), background)?;
+    let which = job.config.arf.transfer_pixels;
+    let style = style_colour_stats(&styles[0], registration, own_style.is_some(), background, which)?;
+    let tf = arf_colour_transfer(dataset, &style, background, which)?;
     warnings.progress().info(format!("ARF colour transfer: photos recoloured with {:?} + {:?}", tf.matrix, tf.offset));
     Ok((styles, Some(tf)))
 }
@@ -143,6 +165,13 @@ fn preflight(job: &StylizeJob, ck: &Checkpoint, dataset: &Dataset) -> Result<[us
     let (width, height) = (cam0.width as usize, cam0.height as usize);
     if width < vgg::MIN_SIDE || height < vgg::MIN_SIDE {
         bail!("training views are {width}x{height}: stylization needs at least {0}x{0} (VGG16)", vgg::MIN_SIDE);
+    }
+    let half = job.method == Method::Arf && job.config.arf.half_resolution;
+    if half && (width < 2 * vgg::MIN_SIDE || height < 2 * vgg::MIN_SIDE) {
+        bail!(
+            "training views are {width}x{height}: arf.half_resolution needs at least {0}x{0} (VGG16 at half size)",
+            2 * vgg::MIN_SIDE
+        );
     }
     let grid_bytes = ck.grid.num_rows() as u64 * 3 * 4 * 6; // SH, RMSprop state, gradients
     let per_view = feature_cache_bytes(job.method, 1, width, height, keeps_content(job));

@@ -11,6 +11,7 @@ use crate::reference::registration::RegistrationFile;
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
+use crate::stylize::config::TransferPixels;
 use crate::util::image::{Image, pixels};
 use crate::util::progress::WarningLog;
 
@@ -98,26 +99,48 @@ pub fn read_styles(
         .collect()
 }
 
-/// ARF's colour transfer: photo statistics over the pixels that are not the
-/// background colour, style statistics over the reference pixels that see
-/// the scene (a style image given with --style: its non-background pixels);
-/// each falls back to every pixel when its mask leaves none.
-pub fn arf_colour_transfer(
-    dataset: &Dataset,
+/// Mean and covariance of the colours of `images` (interleaved RGB
+/// buffers): over every pixel, or over those not of the background colour
+/// (every pixel when that leaves none).
+pub fn colour_stats(images: &[&[f32]], background: [f32; 3], which: TransferPixels) -> Result<ColourStats> {
+    let all = || images.iter().flat_map(|rgb| pixels(rgb));
+    match which {
+        TransferPixels::All => ColourStats::of(all()),
+        TransferPixels::Scene => {
+            ColourStats::of(all().filter(|c| !is_background(c, background))).or_else(|_| ColourStats::of(all()))
+        }
+    }
+}
+
+/// The style side of ARF's colour transfers: over every pixel, or over the
+/// reference pixels that see the scene (a style image given with --style:
+/// its non-background pixels; every pixel when the mask leaves none).
+pub fn style_colour_stats(
     style: &Image,
     registration: &RegistrationFile,
     own_style_image: bool,
     background: [f32; 3],
-) -> Result<ColourTransfer> {
-    let photos = || dataset.train.iter().flat_map(|v| pixels(&v.rgb));
-    let content =
-        ColourStats::of(photos().filter(|c| !is_background(c, background))).or_else(|_| ColourStats::of(photos()))?;
+    which: TransferPixels,
+) -> Result<ColourStats> {
     let style_pixels: Vec<[f32; 3]> = pixels(&style.rgb).collect();
+    if which == TransferPixels::All {
+        return ColourStats::of(style_pixels);
+    }
     let style_mask: Vec<bool> = match (own_style_image, registration.references.first()) {
         (false, Some(r)) if r.hits.len() == style_pixels.len() => r.hits.clone(),
         _ => style_pixels.iter().map(|c| !is_background(c, background)).collect(),
     };
     let masked = style_pixels.iter().zip(&style_mask).filter(|(_, m)| **m).map(|(c, _)| *c);
-    let style = ColourStats::of(masked).or_else(|_| ColourStats::of(style_pixels.iter().copied()))?;
-    Ok(ColourTransfer::between(&content, &style))
+    ColourStats::of(masked).or_else(|_| ColourStats::of(style_pixels.iter().copied()))
+}
+
+/// ARF's colour transfer of the training photos to the style's statistics.
+pub fn arf_colour_transfer(
+    dataset: &Dataset,
+    style: &ColourStats,
+    background: [f32; 3],
+    which: TransferPixels,
+) -> Result<ColourTransfer> {
+    let photos: Vec<&[f32]> = dataset.train.iter().map(|v| &v.rgb[..]).collect();
+    Ok(ColourTransfer::between(&colour_stats(&photos, background, which)?, style))
 }

@@ -24,11 +24,11 @@ use crate::field::optim::{Rmsprop, log_lerp};
 use crate::reference::registration::RegistrationFile;
 use crate::scene::camera::{Camera, NdcParams, Ray, to_ndc};
 use crate::scene::data::Dataset;
-use crate::stylize::colour_transfer::ColourTransfer;
-use crate::stylize::config::{LrSchedule, StylizeConfig, WhiteOn};
+use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
+use crate::stylize::config::{LrSchedule, StylizeConfig, TransferPixels, WhiteOn};
 use crate::stylize::field::{ShTv, StepRows, StyleField, chunked_gradient};
 use crate::stylize::losses;
-use crate::stylize::styles::is_background;
+use crate::stylize::styles::{colour_stats, is_background};
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
 use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
 use crate::util::image::Image;
@@ -164,7 +164,11 @@ impl<'a> Stylizer<'a> {
         let (template, style_bank) = match self.job.method {
             Method::RefNpr => (Some(self.template(styles)?), None),
             Method::Arf => {
-                let (raw, _) = tcm::image_features(&self.vgg, &styles[0], &self.ad, &[&RELU3], false)?;
+                let style = match self.cfg.arf.half_resolution {
+                    true => arf_style_at_half_resolution(&styles[0], &self.dataset.train[0].camera),
+                    false => styles[0].clone(),
+                };
+                let (raw, _) = tcm::image_features(&self.vgg, &style, &self.ad, &[&RELU3], false)?;
                 (None, Some(raw.into_iter().next().expect("one block")))
             }
         };
@@ -352,6 +356,18 @@ impl<'a> Stylizer<'a> {
         let rgb =
             frozen::render_plain(&self.field.grid.sh, &self.view_samples(v), self.background, self.cfg.render_chunk);
         Image::of_camera(&self.dataset.train[v].camera, rgb)
+    }
+
+    /// ARF's second colour transfer: the field's training-view renders
+    /// (clamped, as they are shown) get `style`'s colour statistics.
+    pub fn post_colour_transfer(&mut self, style: &ColourStats, which: TransferPixels) -> Result<ColourTransfer> {
+        let renders: Vec<Vec<f32>> = (0..self.dataset.train.len())
+            .map(|v| self.render_view(v).rgb.into_iter().map(|x| x.clamp(0.0, 1.0)).collect())
+            .collect();
+        let renders: Vec<&[f32]> = renders.iter().map(|r| &r[..]).collect();
+        let tf = ColourTransfer::between(&colour_stats(&renders, self.background, which)?, style);
+        self.field.apply_colour_transfer(&tf);
+        Ok(tf)
     }
 
     pub fn render_reference(&self, r: usize) -> Image {
@@ -594,6 +610,7 @@ impl<'a> Stylizer<'a> {
             }
             Method::Arf => {
                 let a = &self.cfg.arf;
+                let (image, h, w) = if a.half_resolution { (losses::half(image), h / 2, w / 2) } else { (image, h, w) };
                 let maps = self.vgg.features(image, &RELU3)?;
                 let render = tcm::render_blocks(&maps, &[&RELU3], h, w).remove(0);
                 let nnfm = losses::nnfm_loss(
@@ -630,9 +647,11 @@ impl<'a> Stylizer<'a> {
         progress.event(Event::Start { phase: Phase::Guides, done: 0, total: n });
         let mut out = Vec::with_capacity(n);
         let mut matched = 0.0;
+        let half = self.job.method == Method::Arf && self.cfg.arf.half_resolution;
         for v in 0..n {
             let content = self.render_view(v);
-            let (raw, colour_desc) = tcm::image_features(&self.vgg, &content, &self.ad, &blocks, colour)?;
+            let vgg_input = if half { content.half() } else { content.clone() };
+            let (raw, colour_desc) = tcm::image_features(&self.vgg, &vgg_input, &self.ad, &blocks, colour)?;
             let matches = template.map(|t| t.matches(&raw, self.cfg.search_chunk)).unwrap_or_default();
             let colour = match (template, colour_desc) {
                 (Some(t), Some(d)) => {
@@ -658,4 +677,14 @@ impl<'a> Stylizer<'a> {
             .collect();
         Template::build(&self.vgg, &pairs, &self.ad)
     }
+}
+
+/// ARF's style image at the released code's scale: resized so its long side
+/// is the views' long side, then halved (the renders VGG sees are halved too).
+fn arf_style_at_half_resolution(style: &Image, view: &Camera) -> Image {
+    let long_side = view.intrinsics.width.max(view.intrinsics.height) as f32;
+    let scale = long_side / style.width.max(style.height) as f32;
+    let (w, h) = ((style.width as f32 * scale).round() as usize, (style.height as f32 * scale).round() as usize);
+    let sized = if (w, h) == (style.width, style.height) { style.clone() } else { style.resized(w, h) };
+    sized.half()
 }

@@ -33,6 +33,35 @@ impl Image {
         crate::util::tensor::image_tensor(&self.rgb, self.width, self.height, device)
     }
 
+    /// The image at half size, each pixel the mean of a 2x2 block (an odd
+    /// last row or column is dropped): what a 0.5x bilinear resize computes.
+    pub fn half(&self) -> Image {
+        let (w, h) = (self.width / 2, self.height / 2);
+        let at = |x: usize, y: usize, c: usize| self.rgb[(y * self.width + x) * 3 + c];
+        let mut rgb = Vec::with_capacity(w * h * 3);
+        for y in 0..h {
+            for x in 0..w {
+                for c in 0..3 {
+                    let sum = at(2 * x, 2 * y, c)
+                        + at(2 * x + 1, 2 * y, c)
+                        + at(2 * x, 2 * y + 1, c)
+                        + at(2 * x + 1, 2 * y + 1, c);
+                    rgb.push(sum / 4.0);
+                }
+            }
+        }
+        Image::new(w, h, rgb)
+    }
+
+    /// The image resized to `width` x `height` (triangle filter, widened when
+    /// shrinking, so it averages like an area resize).
+    pub fn resized(&self, width: usize, height: usize) -> Image {
+        let src = image::Rgb32FImage::from_raw(self.width as u32, self.height as u32, self.rgb.clone())
+            .expect("an RGB buffer of its size");
+        let out = image::imageops::resize(&src, width as u32, height as u32, image::imageops::FilterType::Triangle);
+        Image::new(width, height, out.into_raw())
+    }
+
     pub fn to_rgb8(&self) -> RgbImage {
         to_rgb8(self.width as u32, self.height as u32, &self.rgb)
     }
