@@ -13,7 +13,7 @@ use refnpr::scene::sh;
 use refnpr::util::tensor::{floats, to_vec};
 
 fn params(step: f32) -> MarchParams {
-    MarchParams { step, sigma_threshold: 0.0, stop_threshold: 1e-7, depth_threshold: std::f32::consts::LN_2 }
+    MarchParams { step, sigma_threshold: 0.0, stop_threshold: 1e-7, ..MarchParams::default() }
 }
 
 /// A box [-1,1]^3 at resolution r, every row holding density `sigma` and flat colour `c`.
@@ -210,4 +210,26 @@ fn long_gathers_and_scatters_are_exact() {
         );
         assert_eq!(to_vec(t).iter().sum::<f32>(), (3 * n) as f32, "scatter-add of {n} rows");
     }
+}
+
+/// Colour at voxels with empty corners: renormalised over the active corners
+/// (the default) every sample's colour weights sum to 1; svox2's zero corners
+/// use the plain trilinear weights, which sum to less at the surface's edge.
+#[test]
+fn colour_corners_renormalised_or_zero() {
+    // Only the lattice points with x index <= 2 of a 6^3 grid are active.
+    let geo = GridGeometry::new([6; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
+    let coords: Vec<u32> = (0..geo.num_points() as u32).filter(|&f| geo.unflat(f as usize)[0] <= 2).collect();
+    let n = coords.len();
+    let grid = RadianceGrid::from_rows(geo, 0, coords, vec![2.0; n], vec![0.3; n * 3], &common::device());
+    let rays = [axis_ray(Vec3::new(-2.0, 0.1, 0.05), Vec3::X)];
+    let renormalised = march::generate_samples(&grid, &rays, &params(0.5));
+    let zero_params = MarchParams { colour_corners: march::ColourCorners::Zero, ..params(0.5) };
+    let zero = march::generate_samples(&grid, &rays, &zero_params);
+    assert_eq!(renormalised.corner_weights, zero.corner_weights, "density is interpolated the same way");
+    assert_eq!(zero.colour_weights, zero.corner_weights);
+    let sums = |w: &[f32]| w.chunks_exact(8).map(|c| c.iter().sum::<f32>()).collect::<Vec<_>>();
+    assert!(sums(&renormalised.colour_weights).iter().all(|s| (s - 1.0).abs() < 1e-5));
+    let edge = sums(&zero.colour_weights).into_iter().fold(1.0f32, f32::min);
+    assert!(edge < 0.9, "a sample beyond the active half-space has empty corners (smallest weight sum {edge})");
 }

@@ -666,8 +666,9 @@ fn arf_baseline_lowers_its_matching_loss() {
 /// ARF as the released code runs it, piece by piece: the 2x2 half-size
 /// image (plain and tensor) against hand-computed values, the field's
 /// recolouring against the affine map it applies, the colour statistics
-/// with and without the background, and a run whose second transfer gives
-/// the training renders' scene pixels the style's mean colour.
+/// with and without the background, and a run (with svox2's zero colour
+/// corners) whose second transfer gives the training renders' scene pixels
+/// the style's mean colour.
 #[test]
 fn arf_as_the_authors_run_it() {
     use refnpr::stylize::colour_transfer::ColourTransfer;
@@ -720,6 +721,7 @@ fn arf_as_the_authors_run_it() {
     cfg.arf.colour_transfer = false;
     cfg.arf.post_transfer = true;
     cfg.arf.half_resolution = true;
+    cfg.colour_corners = refnpr::field::march::ColourCorners::Zero;
     let mut j = job(&photo, &case, &out, cfg, Method::Arf);
     j.render_test = false;
     // A style image of its own: the style statistics are then over its
@@ -729,6 +731,8 @@ fn arf_as_the_authors_run_it() {
     assert!(report.post_colour_transfer.is_some(), "the second transfer is reported");
     let ds = data::load(&t.path().join("scene"), &Default::default()).unwrap();
     let ck = checkpoint::load_with(&out, &d, false).unwrap();
+    // The stylized checkpoint records svox2's zero corners: its renders use them too.
+    assert_eq!(ck.meta.config.march.colour_corners, refnpr::field::march::ColourCorners::Zero);
     let renders: Vec<Vec<f32>> = ds
         .train
         .iter()

@@ -11,6 +11,18 @@ use crate::scene::sh;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+/// How a sample's colour treats the empty (inactive) corners of its voxel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ColourCorners {
+    /// The trilinear weights renormalised over the active corners: empty
+    /// space has no colour, so it must not pull surfaces towards grey.
+    Renormalised,
+    /// Empty corners count as zero coefficients (svox2): at a silhouette
+    /// the colour is pulled towards SH 0 (grey 0.5).
+    Zero,
+}
+
 /// How rays are marched.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -25,11 +37,19 @@ pub struct MarchParams {
     /// sum(sigma * delta) reaches this (ln 2: transmittance 0.5), located
     /// inside the sample's segment assuming constant density there.
     pub depth_threshold: f32,
+    /// Colour interpolation at voxels with empty corners.
+    pub colour_corners: ColourCorners,
 }
 
 impl Default for MarchParams {
     fn default() -> Self {
-        Self { step: 0.5, sigma_threshold: 1e-8, stop_threshold: 1e-4, depth_threshold: std::f32::consts::LN_2 }
+        Self {
+            step: 0.5,
+            sigma_threshold: 1e-8,
+            stop_threshold: 1e-4,
+            depth_threshold: std::f32::consts::LN_2,
+            colour_corners: ColourCorners::Renormalised,
+        }
     }
 }
 
@@ -43,8 +63,8 @@ pub struct SampleBatch {
     pub corner_rows: Vec<i32>,
     /// 8 trilinear weights per sample (density: empty corners count as zero density).
     pub corner_weights: Vec<f32>,
-    /// The same weights renormalised over the active corners (colour: empty
-    /// space has no colour, so it must not pull surfaces towards grey).
+    /// The weights colour is interpolated with: by default renormalised over
+    /// the active corners (see `ColourCorners`).
     pub colour_weights: Vec<f32>,
     /// Distance along the ray of each sample.
     pub t: Vec<f32>,
@@ -318,11 +338,15 @@ impl<'a> Marcher<'a> {
             k += 1;
             let Corners { rows, w, first_active, sigma, wsum } = corners(grid, ray.origin + t * ray.dir);
             if first_active >= 0 && sigma > p.sigma_threshold {
+                let colour_norm = match p.colour_corners {
+                    ColourCorners::Renormalised => wsum,
+                    ColourCorners::Zero => 1.0,
+                };
                 for c in 0..8 {
                     if rows[c] >= 0 {
                         out.rows.push(rows[c]);
                         out.weights.push(w[c]);
-                        out.colour_weights.push(w[c] / wsum);
+                        out.colour_weights.push(w[c] / colour_norm);
                     } else {
                         out.rows.push(first_active);
                         out.weights.push(0.0);

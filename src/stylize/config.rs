@@ -6,6 +6,7 @@ use anyhow::{Context, Result, ensure};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
+use crate::field::march::ColourCorners;
 use crate::field::optim::RmsStart;
 use crate::reference::r3::RegisterParams;
 use crate::util::config;
@@ -261,6 +262,9 @@ pub struct StylizeConfig {
     pub ablation: AblationConfig,
     pub arf: ArfConfig,
     pub register: RegisterParams,
+    /// Colour at voxels with empty corners, for the stylized field (its
+    /// checkpoint records it, so every render of it uses the same).
+    pub colour_corners: ColourCorners,
     /// Samples whose compositing weight is below this are dropped from the cached sample lists.
     pub min_sample_weight: f32,
     /// Memory for cached per-view sample lists (MB); views beyond it are re-marched each step.
@@ -281,6 +285,7 @@ impl Default for StylizeConfig {
             ablation: AblationConfig::default(),
             arf: ArfConfig::default(),
             register: RegisterParams::default(),
+            colour_corners: ColourCorners::Renormalised,
             min_sample_weight: 1e-5,
             sample_cache_mb: 2048,
             render_chunk: 16384,

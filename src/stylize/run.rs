@@ -231,6 +231,7 @@ fn save_outputs(st: &Stylizer, photo_meta: &checkpoint::CheckpointMeta, started:
     let mut meta = photo_meta.clone();
     meta.sh_degree = 0;
     meta.config.grid.sh_degree = 0;
+    meta.config.march = st.march();
     meta.step = st.curve.iter().filter(|p| p.phase != StepKind::Refit).count();
     meta.train_seconds = started.elapsed().as_secs_f64();
     let grid = &st.field.grid;

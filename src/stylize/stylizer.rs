@@ -130,7 +130,7 @@ impl<'a> Stylizer<'a> {
             dataset,
             ndc: meta.ndc,
             background: meta.background,
-            march: meta.config.march,
+            march: MarchParams { colour_corners: job.config.colour_corners, ..meta.config.march },
             occupancy: BlockOccupancy::of(&field.grid),
             field,
             vgg: Vgg16::load(&ad),
@@ -368,6 +368,12 @@ impl<'a> Stylizer<'a> {
         let tf = ColourTransfer::between(&colour_stats(&renders, self.background, which)?, style);
         self.field.apply_colour_transfer(&tf);
         Ok(tf)
+    }
+
+    /// How the stylized field is marched (the photoreal run's, with this
+    /// stylization's `colour_corners`).
+    pub fn march(&self) -> MarchParams {
+        self.march
     }
 
     pub fn render_reference(&self, r: usize) -> Image {
