@@ -663,14 +663,12 @@ fn arf_baseline_lowers_its_matching_loss() {
     assert_eq!(to_vec(a.grid.density.clone()), to_vec(b.grid.density.clone()), "density changed");
 }
 
-/// ARF as the released code runs it, piece by piece: the 2x2 half-size
-/// image (plain and tensor) against hand-computed values, the field's
-/// recolouring against the affine map it applies, the colour statistics
-/// with and without the background, and a run (with svox2's zero colour
-/// corners) whose second transfer gives the training renders' scene pixels
-/// the style's mean colour.
+/// The released code's ARF, piece by piece: the 2x2 half-size image (plain
+/// and tensor) against hand-computed values, the field's recolouring against
+/// the affine map it applies, the colour statistics with and without the
+/// background.
 #[test]
-fn arf_as_the_authors_run_it() {
+fn arf_pieces_of_the_released_code() {
     use refnpr::stylize::colour_transfer::ColourTransfer;
     use refnpr::stylize::config::TransferPixels;
     use refnpr::stylize::styles::colour_stats;
@@ -707,9 +705,17 @@ fn arf_as_the_authors_run_it() {
     let all = colour_stats(&[&px], [1.0; 3], TransferPixels::All).unwrap();
     assert_eq!((scene.count, all.count), (2, 4));
     assert!((scene.mean[0] - 0.3).abs() < 1e-6 && (all.mean[0] - 0.65).abs() < 1e-6, "{scene:?} {all:?}");
+}
 
-    // A run with the released code's ARF: the second transfer is reported,
-    // and afterwards the training renders' scene pixels have the style's mean.
+/// A run with the released code's ARF (half-resolution VGG, svox2's zero
+/// colour corners, the second colour transfer): the second transfer is
+/// reported, and afterwards the training renders' scene pixels have the
+/// style's mean colour.
+#[test]
+fn arf_baseline_with_the_released_codes_second_transfer() {
+    use refnpr::stylize::config::TransferPixels;
+    use refnpr::stylize::styles::colour_stats;
+    let d = common::device();
     let t = TempDir::new("stylize-arf-authors");
     let photo = tiny_photo_run(t.path(), 120, 6);
     let case = write_case(t.path(), &t.path().join("scene"), 1, "");
@@ -721,7 +727,7 @@ fn arf_as_the_authors_run_it() {
     cfg.arf.colour_transfer = false;
     cfg.arf.post_transfer = true;
     cfg.arf.half_resolution = true;
-    cfg.colour_corners = refnpr::field::march::ColourCorners::Zero;
+    cfg.colour_corners = march::ColourCorners::Zero;
     let mut j = job(&photo, &case, &out, cfg, Method::Arf);
     j.render_test = false;
     // A style image of its own: the style statistics are then over its
@@ -732,7 +738,7 @@ fn arf_as_the_authors_run_it() {
     let ds = data::load(&t.path().join("scene"), &Default::default()).unwrap();
     let ck = checkpoint::load_with(&out, &d, false).unwrap();
     // The stylized checkpoint records svox2's zero corners: its renders use them too.
-    assert_eq!(ck.meta.config.march.colour_corners, refnpr::field::march::ColourCorners::Zero);
+    assert_eq!(ck.meta.config.march.colour_corners, march::ColourCorners::Zero);
     let renders: Vec<Vec<f32>> = ds
         .train
         .iter()
