@@ -490,6 +490,16 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
     for k in ["registration", "refit", "content", "image_epochs", "smooth_update"] {
         assert!(json["seconds"][k].as_f64().is_some(), "seconds.{k}");
     }
+    // L_color's targets: one record per training view, a 4x4 relu5 grid at
+    // 64 px; the reference view (0) is supervised with its own style colours.
+    let targets: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("colour_targets.json")).unwrap()).unwrap();
+    let targets = targets.as_array().unwrap();
+    assert_eq!(targets.len(), 16);
+    assert_eq!(targets[0]["positions"], serde_json::json!([4, 4]));
+    assert!(targets.iter().all(|r| r["targets"].as_array().unwrap().len() == 16));
+    let supervised = targets[0]["targets"].as_array().unwrap().iter().filter(|t| !t.is_null()).count();
+    assert!(supervised > 0, "the reference view matches itself");
 }
 
 /// `refnpr stylize --registration DIR` reads what `refnpr register` wrote

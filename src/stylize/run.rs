@@ -78,6 +78,13 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let colour = job.method == Method::RefNpr && cfg.ablation.use_colour_loss && case.color_pre;
     let (guidance, colour_matched) = st.guidance(&styles, keeps_content(job), colour, progress)?;
     seconds.insert("content".to_string(), t.elapsed().as_secs_f64());
+    if colour {
+        // What L_color pulls each view towards, for inspection (small: one entry per 16x16 pixels).
+        let [w, h] = image_size;
+        let records: Vec<_> =
+            guidance.guides.iter().enumerate().filter_map(|(v, g)| g.colour().map(|c| c.to_record(v, w, h))).collect();
+        files::write_json(&job.out.join("colour_targets.json"), &records)?;
+    }
 
     let (image_secs, smooth_secs) = st.image_epochs(&styles, guidance, progress)?;
     seconds.insert("image_epochs".to_string(), image_secs);

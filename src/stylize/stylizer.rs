@@ -52,6 +52,13 @@ pub struct ViewGuide {
     colour: Option<ColourTargets>,
 }
 
+impl ViewGuide {
+    /// L_color's targets of this view (Ref-NPR with the colour loss).
+    pub fn colour(&self) -> Option<&ColourTargets> {
+        self.colour.as_ref()
+    }
+}
+
 /// Loss values of one image step.
 #[derive(Default, Clone, Copy)]
 struct ImageLosses {

@@ -9,6 +9,7 @@
 
 use anyhow::Result;
 use burn::tensor::{Device, Int, Tensor};
+use serde::Serialize;
 
 use crate::stylize::losses::patch_means;
 use crate::util::image::Image;
@@ -156,4 +157,30 @@ pub struct ColourTargets {
     /// `[relu5 positions, 1]`, 1 = supervised.
     pub mask: Tensor<2>,
     pub matched_fraction: f32,
+}
+
+/// One view's colour targets as written to `colour_targets.json`: row-major
+/// over the relu5 grid (one position per 16x16 pixels), `null` where the
+/// position is not supervised.
+#[derive(Debug, Clone, Serialize)]
+pub struct ViewColourTargets {
+    pub view: usize,
+    /// `[columns, rows]` of the relu5 grid.
+    pub positions: [usize; 2],
+    pub matched_fraction: f32,
+    pub targets: Vec<Option<[f32; 3]>>,
+}
+
+impl ColourTargets {
+    pub fn to_record(&self, view: usize, width: usize, height: usize) -> ViewColourTargets {
+        let [rows, cols] = block_size(&RELU5, height, width);
+        let target = to_vec(self.target.clone());
+        let mask = to_vec(self.mask.clone());
+        let targets = mask
+            .iter()
+            .enumerate()
+            .map(|(i, &m)| (m > 0.0).then(|| [target[i * 3], target[i * 3 + 1], target[i * 3 + 2]]))
+            .collect();
+        ViewColourTargets { view, positions: [cols, rows], matched_fraction: self.matched_fraction, targets }
+    }
 }
