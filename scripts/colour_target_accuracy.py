@@ -12,7 +12,11 @@ holds `refnpr render --path train` frames (rgb/0000.png ...). Prints, over
 the supervised 16x16 patches, the PSNR of the patch means against the
 ground truth's: of the targets, and of each run's renders (for the renders
 also over all patches), split into the reference views and the others
-(REFERENCE_VIEWS="0" by default).
+(REFERENCE_VIEWS="0" by default). With ID_DIR (a procedural scene's
+train folder, r_<view>_id.png object ids), also the share of supervised
+targets taken from a reference patch of another object (majority ids;
+one reference, the first of REFERENCE_VIEWS) and the targets' PSNR split
+by that.
 """
 import json, os, sys
 import numpy as np
@@ -27,6 +31,11 @@ def load(path, background):
 def patch_means(img, cols, rows):
     img = img[: rows * PATCH, : cols * PATCH]
     return img.reshape(rows, PATCH, cols, PATCH, 3).mean(axis=(1, 3)).reshape(-1, 3)
+
+def majority_ids(path, cols, rows):
+    ids = np.asarray(Image.open(path))[: rows * PATCH, : cols * PATCH]
+    blocks = ids.reshape(rows, PATCH, cols, PATCH).transpose(0, 2, 1, 3).reshape(rows * cols, -1)
+    return np.array([np.bincount(b).argmax() for b in blocks])
 
 def psnr(a, b):
     mse = float(np.mean((a - b) ** 2)) if len(a) else float("nan")
@@ -61,8 +70,22 @@ def main():
                 run_sup[n].append(p[sup])
                 run_all[n].append(p)
         gt_sup, gt_all = np.concatenate(gt_sup), np.concatenate(gt_all)
+        tgt = np.array(tgt)
         print(f"{name}: {len(recs)} views, {len(gt_sup)} of {len(gt_all)} patches supervised")
-        print(f"  targets vs ground truth (supervised patches): {psnr(np.array(tgt), gt_sup):.2f} dB")
+        print(f"  targets vs ground truth (supervised patches): {psnr(tgt, gt_sup):.2f} dB")
+        id_dir = os.environ.get("ID_DIR")
+        if id_dir:
+            ref = min(refs)
+            cols, rows = recs[0]["positions"]
+            ref_ids = majority_ids(f"{id_dir}/r_{ref}_id.png", cols, rows)
+            same = []
+            for r in recs:
+                ids = majority_ids(f"{id_dir}/r_{r['view']}_id.png", *r["positions"])
+                same += [ids[i] == ref_ids[s] for i, s in enumerate(r["sources"]) if s is not None]
+            same = np.array(same)
+            print(f"  targets from a reference patch of the same object: {100 * same.mean():.1f} %"
+                  f" ({psnr(tgt[same], gt_sup[same]):.2f} dB); of another object: {100 * (1 - same.mean()):.1f} %"
+                  f" ({psnr(tgt[~same], gt_sup[~same]):.2f} dB)")
         for n, _ in runs:
             s, a = np.concatenate(run_sup[n]), np.concatenate(run_all[n])
             print(f"  {n}: supervised patches {psnr(s, gt_sup):.2f} dB, all patches {psnr(a, gt_all):.2f} dB")

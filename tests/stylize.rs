@@ -500,6 +500,10 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
     assert!(targets.iter().all(|r| r["targets"].as_array().unwrap().len() == 16));
     let supervised = targets[0]["targets"].as_array().unwrap().iter().filter(|t| !t.is_null()).count();
     assert!(supervised > 0, "the reference view matches itself");
+    // Where the reference view is supervised, its targets come from its own positions.
+    for (i, s) in targets[0]["sources"].as_array().unwrap().iter().enumerate() {
+        assert!(s.is_null() || s.as_u64() == Some(i as u64), "reference position {i} matched {s}");
+    }
 }
 
 /// `refnpr stylize --registration DIR` reads what `refnpr register` wrote

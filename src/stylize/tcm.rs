@@ -140,10 +140,10 @@ impl Template {
             .collect();
         let n = mask.len();
         let matched = mask.iter().filter(|&&m| m > 0.0).count();
-        let target =
-            self.colour_values.clone().select(0, indices(idx.into_iter().map(|i| i as i32).collect(), &device));
+        let target = self.colour_values.clone().select(0, indices(idx.iter().map(|&i| i as i32).collect(), &device));
         ColourTargets {
             target,
+            source: idx,
             mask: floats(mask, [n, 1], &device),
             matched_fraction: matched as f32 / n.max(1) as f32,
         }
@@ -156,6 +156,9 @@ pub struct ColourTargets {
     pub target: Tensor<2>,
     /// `[relu5 positions, 1]`, 1 = supervised.
     pub mask: Tensor<2>,
+    /// Per position, the template position its target comes from (the
+    /// references' relu5 positions, row-major, one reference after another).
+    pub source: Vec<usize>,
     pub matched_fraction: f32,
 }
 
@@ -169,6 +172,8 @@ pub struct ViewColourTargets {
     pub positions: [usize; 2],
     pub matched_fraction: f32,
     pub targets: Vec<Option<[f32; 3]>>,
+    /// The template position each supervised target comes from.
+    pub sources: Vec<Option<usize>>,
 }
 
 impl ColourTargets {
@@ -181,6 +186,7 @@ impl ColourTargets {
             .enumerate()
             .map(|(i, &m)| (m > 0.0).then(|| [target[i * 3], target[i * 3 + 1], target[i * 3 + 2]]))
             .collect();
-        ViewColourTargets { view, positions: [cols, rows], matched_fraction: self.matched_fraction, targets }
+        let sources = mask.iter().zip(&self.source).map(|(&m, &s)| (m > 0.0).then_some(s)).collect();
+        ViewColourTargets { view, positions: [cols, rows], matched_fraction: self.matched_fraction, targets, sources }
     }
 }
