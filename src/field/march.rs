@@ -338,7 +338,7 @@ impl<'a> Marcher<'a> {
             k += 1;
             let Corners { rows, w, first_active, sigma, wsum } = corners(grid, ray.origin + t * ray.dir);
             if first_active >= 0 && sigma > p.sigma_threshold {
-                let colour_norm = match p.colour_corners {
+                let colour_weight_sum = match p.colour_corners {
                     ColourCorners::Renormalised => wsum,
                     ColourCorners::Zero => 1.0,
                 };
@@ -346,7 +346,7 @@ impl<'a> Marcher<'a> {
                     if rows[c] >= 0 {
                         out.rows.push(rows[c]);
                         out.weights.push(w[c]);
-                        out.colour_weights.push(w[c] / colour_norm);
+                        out.colour_weights.push(w[c] / colour_weight_sum);
                     } else {
                         out.rows.push(first_active);
                         out.weights.push(0.0);

@@ -17,7 +17,7 @@ use crate::reference::case::ReferenceCase;
 use crate::reference::registration::{PhotoRun, RegistrationFile, lift_references, register_case};
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
-use crate::stylize::colour_transfer::ColourTransfer;
+use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::styles::{arf_colour_transfer, read_styles, style_colour_stats};
 use crate::stylize::stylizer::Stylizer;
 use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
@@ -56,15 +56,8 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     }
     seconds.insert("registration".to_string(), t.elapsed().as_secs_f64());
 
-    let (styles, colour_transfer) = style_side(job, &case, &dataset, &registration, ck.meta.background, &mut warnings)?;
-
-    // ARF's second transfer aims at the same style statistics as the first.
-    let post_style = if job.method == Method::Arf && cfg.arf.post_transfer {
-        let own_style = job.style.is_some();
-        Some(style_colour_stats(&styles[0], &registration, own_style, ck.meta.background, cfg.arf.transfer_pixels)?)
-    } else {
-        None
-    };
+    let (styles, style_colours, colour_transfer) =
+        style_side(job, &case, &dataset, &registration, ck.meta.background, &mut warnings)?;
     let photo_meta = ck.meta.clone();
     let mut st = Stylizer::new(job, &dataset, ck.grid, &photo_meta, registration, colour_transfer);
     if let (true, Some(tf)) = (job.method == Method::Arf && cfg.arf.transfer_grid, colour_transfer) {
@@ -91,9 +84,9 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     seconds.insert("smooth_update".to_string(), smooth_secs);
     progress.event(Event::PhaseDone { phase: Phase::ImageEpochs, seconds: image_secs + smooth_secs });
 
-    let post_colour_transfer = match &post_style {
+    let post_colour_transfer = match style_colours.filter(|_| cfg.arf.post_transfer) {
         Some(style) => {
-            let tf = st.post_colour_transfer(style, cfg.arf.transfer_pixels)?;
+            let tf = st.post_colour_transfer(&style, cfg.arf.transfer_pixels)?;
             progress.info(format!("ARF colour transfer after stylizing: {:?} + {:?}", tf.matrix, tf.offset));
             Some(tf)
         }
@@ -131,8 +124,9 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     Ok(report)
 }
 
-/// The style images and, for ARF, the colour transfer of the photos
-/// (`--style` is ARF's alone).
+/// The style images and, for ARF with either colour transfer on, the style's
+/// colour statistics (both transfers aim at them) and the photos'
+/// recolouring (`--style` is ARF's alone).
 fn style_side(
     job: &StylizeJob,
     case: &ReferenceCase,
@@ -140,17 +134,21 @@ fn style_side(
     registration: &RegistrationFile,
     background: [f32; 3],
     warnings: &mut WarningLog,
-) -> Result<(Vec<Image>, Option<ColourTransfer>)> {
+) -> Result<(Vec<Image>, Option<ColourStats>, Option<ColourTransfer>)> {
     let own_style = job.style.as_deref().filter(|_| job.method == Method::Arf);
     let styles = read_styles(case, registration, own_style, background, warnings)?;
-    if job.method != Method::Arf || !job.config.arf.colour_transfer {
-        return Ok((styles, None));
+    let arf = &job.config.arf;
+    if job.method != Method::Arf || !(arf.colour_transfer || arf.post_transfer) {
+        return Ok((styles, None, None));
     }
-    let which = job.config.arf.transfer_pixels;
+    let which = arf.transfer_pixels;
     let style = style_colour_stats(&styles[0], registration, own_style.is_some(), background, which)?;
+    if !arf.colour_transfer {
+        return Ok((styles, Some(style), None));
+    }
     let tf = arf_colour_transfer(dataset, &style, background, which)?;
     warnings.progress().info(format!("ARF colour transfer: photos recoloured with {:?} + {:?}", tf.matrix, tf.offset));
-    Ok((styles, Some(tf)))
+    Ok((styles, Some(style), Some(tf)))
 }
 
 /// Whether the content features of every view are kept (λ' > 0).

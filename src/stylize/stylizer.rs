@@ -663,8 +663,14 @@ impl<'a> Stylizer<'a> {
         let half = self.job.method == Method::Arf && self.cfg.arf.half_resolution;
         for v in 0..n {
             let content = self.render_view(v);
-            let vgg_input = if half { content.half() } else { content.clone() };
-            let (raw, colour_desc) = tcm::image_features(&self.vgg, &vgg_input, &self.ad, &blocks, colour)?;
+            let halved;
+            let vgg_input = if half {
+                halved = content.half();
+                &halved
+            } else {
+                &content
+            };
+            let (raw, colour_desc) = tcm::image_features(&self.vgg, vgg_input, &self.ad, &blocks, colour)?;
             let matches = template.map(|t| t.matches(&raw, self.cfg.search_chunk)).unwrap_or_default();
             let colour = match (template, colour_desc) {
                 (Some(t), Some(d)) => {
