@@ -233,3 +233,45 @@ fn colour_corners_renormalised_or_zero() {
     let edge = sums(&zero.colour_weights).into_iter().fold(1.0f32, f32::min);
     assert!(edge < 0.9, "a sample beyond the active half-space has empty corners (smallest weight sum {edge})");
 }
+
+/// The adapter line names the adapter, its kind and API; a CPU adapter gets
+/// a warning that says how much slower it is and how to pick flex, a GPU
+/// none. On the wgpu backend, the real adapter is reported through the
+/// progress sink (lavapipe in CI: a CPU, so the warning comes too).
+#[test]
+fn wgpu_names_its_adapter_and_warns_on_a_cpu() {
+    use refnpr::BackendKind;
+    use refnpr::util::backend::{AdapterSummary, SOFTWARE_ADAPTER_SLOWDOWN, announce_wgpu};
+    use refnpr::util::progress::{Event, Progress};
+    let gpu = AdapterSummary {
+        name: "NVIDIA H100".into(),
+        kind: "discrete GPU".into(),
+        api: "Vulkan".into(),
+        driver: "NVIDIA 560".into(),
+        software: false,
+    };
+    assert_eq!(gpu.line(), "wgpu adapter: NVIDIA H100 (discrete GPU, Vulkan; driver NVIDIA 560)");
+    assert!(gpu.software_warning().is_none());
+    let cpu = AdapterSummary { name: "llvmpipe".into(), kind: "CPU".into(), software: true, ..gpu };
+    let w = cpu.software_warning().expect("a CPU adapter is warned about");
+    assert!(w.contains("llvmpipe") && w.contains(SOFTWARE_ADAPTER_SLOWDOWN) && w.contains("--backend flex"), "{w}");
+
+    if common::backend() != BackendKind::Wgpu {
+        return;
+    }
+    struct Recorder(std::sync::Mutex<Vec<Event>>);
+    impl Progress for Recorder {
+        fn event(&self, e: Event) {
+            self.0.lock().unwrap().push(e);
+        }
+    }
+    let rec = Recorder(Default::default());
+    let adapter = announce_wgpu(&rec).expect("the wgpu tests run where wgpu has an adapter");
+    let events = rec.0.into_inner().unwrap();
+    assert_eq!(events[0], Event::Info(adapter.line()));
+    assert!(adapter.line().starts_with("wgpu adapter: ") && !adapter.name.is_empty(), "{}", adapter.line());
+    assert_eq!(events.len(), if adapter.software { 2 } else { 1 }, "{events:?}");
+    if adapter.software {
+        assert!(matches!(&events[1], Event::Warning(w) if w.contains("--backend flex")), "{events:?}");
+    }
+}

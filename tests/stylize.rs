@@ -490,6 +490,18 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
     for k in ["registration", "refit", "content", "image_epochs", "smooth_update"] {
         assert!(json["seconds"][k].as_f64().is_some(), "seconds.{k}");
     }
+    // Host-device traffic of an image step: the render stays on the device
+    // for VGG, so reads are the step's loss values only (one read for the
+    // image losses, one per pseudo-ray group: the reference's pixels and the
+    // registered ones), 4-byte scalars; nothing image- or grid-sized.
+    for phase in ["image_epochs", "smooth_update"] {
+        let t = &report.transfers[phase];
+        assert!(t.steps > 0, "{phase}: no steps counted");
+        assert!(t.total.reads <= 3 * t.steps as u64, "{phase}: {:?}", t.total);
+        assert!(t.total.read_bytes <= 4 * 8 * t.steps as u64, "{phase}: {:?}", t.total);
+        assert!(t.total.uploads > 0, "{phase}: the step's sample lists are uploaded");
+    }
+    assert!(json["transfers"]["refit"]["per_step"]["reads"].as_u64().is_some());
     // L_color's targets: one record per training view, a 4x4 relu5 grid at
     // 64 px; the reference view (0) is supervised with its own style colours.
     let targets: serde_json::Value =

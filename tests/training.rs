@@ -142,3 +142,36 @@ fn a_grid_too_large_is_refused_before_allocating() {
     };
     assert!(e.contains("2048x2048x2048") && e.contains("available"), "{e}");
 }
+
+/// A training step moves what its ray batch needs and never the grid
+/// (`util::transfer` counts the library's own uploads and reads, so the
+/// figures are the same on every backend): uploads are the batch's sample
+/// lists, its target colours, the step's row indices and TV neighbour lists,
+/// nothing more; reads are the loss and the step's new densities (the host
+/// mirror the march needs), nothing more.
+#[test]
+fn a_training_step_moves_its_batch_not_the_grid() {
+    use refnpr::util::transfer;
+    let t = TempDir::new("transfers");
+    let ds = tiny_scene(&t.path().join("scene"));
+    let cfg = tiny_config(40);
+    let rays = cfg.optim.batch_rays;
+    let mut tr = Trainer::new(&ds, cfg, &common::device()).unwrap();
+    tr.step_once().unwrap();
+    let before = transfer::counted();
+    let st = tr.step_once().unwrap();
+    let moved = transfer::counted().since(before);
+    let nb = tr.grid.num_basis();
+    // Per sample: 8 corner rows, 8 + 8 corner weights, the SH basis, delta and t;
+    // per ray: the padded sample map and the target colour; per row: its index
+    // and at most three TV neighbour indices; the background colour.
+    let bound = st.samples * (26 + nb) * 4 + rays * (st.max_samples_per_ray * 4 + 12) + st.rows * 16 + 12;
+    assert!(moved.uploads <= 16, "{moved}");
+    assert!(moved.upload_bytes as usize <= bound, "{moved}: more than the batch needs ({bound} B)");
+    assert_eq!(moved.reads, 2, "{moved}");
+    assert_eq!(moved.read_bytes as usize, 4 + 4 * st.rows, "{moved}");
+    // The bound's only slack is the TV lists of the rows without TV terms
+    // (under 12 B per row); re-sending the grid would add (1 + 3 nb) x 4 =
+    // 52 B per grid row, so it cannot pass unnoticed.
+    assert!(tr.grid.num_rows() >= st.rows);
+}

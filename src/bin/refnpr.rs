@@ -19,6 +19,7 @@ use refnpr::scene::data::{self, Dataset, procedural};
 use refnpr::stylize::config::StylizeConfig;
 use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::{Method, StylizeJob};
+use refnpr::tools::info::SystemInfo;
 use refnpr::tools::{bench, demo, paint};
 use refnpr::util::{config, files, image};
 use refnpr::{BackendKind, Console, Progress};
@@ -28,6 +29,9 @@ use refnpr::{BackendKind, Console, Progress};
 struct Cli {
     #[command(subcommand)]
     command: Command,
+    /// Also print per-phase figures (host-device transfers).
+    #[arg(long, global = true)]
+    verbose: bool,
 }
 
 /// The inputs of the R³ and stylization commands.
@@ -193,6 +197,12 @@ enum Command {
         #[arg(long, default_value_t = 0)]
         seed: u64,
     },
+    /// What this build runs on: backends, wgpu adapters, CPU threads and SIMD, memory, VGG16 weights.
+    Info {
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
     /// Writes the built-in procedural scene (Blender layout, with depth, ids and a stylized twin).
     Scene {
         #[arg(long)]
@@ -253,10 +263,10 @@ fn main() {
 fn run() -> Result<()> {
     let matches = Cli::command().get_matches();
     let cli = Cli::from_arg_matches(&matches)?;
-    let progress = Console::default();
+    let progress = Console::verbose(cli.verbose);
     match cli.command {
         Command::Demo { out, backend, steps, epochs } => {
-            run_demo(&out, backend_or_env(backend)?, steps, epochs, &progress)
+            run_demo(&out, backend_or_env(backend, &progress)?, steps, epochs, &progress)
         }
         Command::Bench { backends, res, rays, repeats, json } => run_bench(backends, &res, rays, repeats, json),
         Command::BenchVgg { backends, sizes, warmup, repeats, no_onnxruntime, json } => {
@@ -269,7 +279,7 @@ fn run() -> Result<()> {
             run_stylize_command(cli.command, stylize, &progress)
         }
         Command::Eval { run, reference, gt, robustness, robustness_epochs, robustness_views, out, data, backend } => {
-            let backend = backend_or_env(backend)?;
+            let backend = backend_or_env(backend, &progress)?;
             let json = match reference {
                 Some(case) => {
                     let job = EvalJob { run, case, gt, robustness, robustness_views, backend, data, robustness_epochs };
@@ -295,16 +305,25 @@ fn run() -> Result<()> {
             println!("wrote {}", out.display());
             Ok(())
         }
+        Command::Info { json } => {
+            let info = SystemInfo::gather();
+            match json {
+                true => println!("{}", serde_json::to_string_pretty(&info)?),
+                false => println!("{info}"),
+            }
+            Ok(())
+        }
         Command::Scene { out, seed, size } => {
             procedural::write_scene(&out, &procedural::SceneOptions { seed, size, ..Default::default() })?;
             println!("wrote the procedural scene to {}", out.display());
             Ok(())
         }
         Command::Train { data, out, config, backend, resume, steps } => {
-            run_train(&data, &out, config.as_deref(), backend_or_env(backend)?, resume, steps, &progress)
+            run_train(&data, &out, config.as_deref(), backend_or_env(backend, &progress)?, resume, steps, &progress)
         }
         Command::Render { ckpt, path, out, frames, data, backend } => {
-            let (ck, dataset) = checkpoint::load_run(&ckpt, data.as_deref(), &backend_or_env(backend)?.device())?;
+            let device = backend_or_env(backend, &progress)?.device();
+            let (ck, dataset) = checkpoint::load_run(&ckpt, data.as_deref(), &device)?;
             let cams = render_path::path_cameras(&dataset, path, frames)?;
             render_path::render_frames(&ck, &cams, &out, &progress)?;
             println!("rendered {} frames to {}", cams.len(), out.display());
@@ -313,16 +332,20 @@ fn run() -> Result<()> {
     }
 }
 
-fn backend_or_env(b: Option<BackendKind>) -> Result<BackendKind> {
-    match b {
-        Some(b) => Ok(b),
-        None => BackendKind::from_env(),
-    }
+/// The backend asked for (or `REFNPR_BACKEND`'s), brought up: wgpu names
+/// its adapter here, or says why it has none.
+fn backend_or_env(b: Option<BackendKind>, progress: &dyn Progress) -> Result<BackendKind> {
+    let kind = match b {
+        Some(b) => b,
+        None => BackendKind::from_env()?,
+    };
+    kind.open(progress)?;
+    Ok(kind)
 }
 
 /// A photoreal run and its dataset on the default backend (R³ needs no autodiff).
 fn load_run(ckpt: &Path, data_dir: Option<PathBuf>) -> Result<(Checkpoint, Dataset)> {
-    checkpoint::load_run(ckpt, data_dir.as_deref(), &backend_or_env(None)?.device())
+    checkpoint::load_run(ckpt, data_dir.as_deref(), &backend_or_env(None, &Console::default())?.device())
 }
 
 fn run_demo(
@@ -502,7 +525,7 @@ fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Pr
         config::overlay(&config.register, given_flags(&register, matches)?, "the command line", "R³ flags")?;
     config.validate()?;
     let render_test = !no_render;
-    let backend = backend_or_env(backend)?;
+    let backend = backend_or_env(backend, progress)?;
     let PhotoAndCase { photo, reference: case, data } = inputs;
     let job = StylizeJob { photo, case, out, config, method, backend, style, data, registration, render_test };
     let r = run_stylize(&job, progress)?;

@@ -259,7 +259,7 @@ pub fn tolerance(ck: &Checkpoint) -> Tolerance {
 
 /// `refnpr eval --run STYLE_RUN --reference CASE`.
 pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<StylizationEval> {
-    let device = job.backend.device();
+    let device = job.backend.open(progress)?;
     let (ck, dataset) = checkpoint::load_run(&job.run, job.data.as_deref(), &device)?;
     let case = ReferenceCase::load(&job.case)?;
     if let Some(m) = case.scene_mismatch(&dataset) {

@@ -198,14 +198,23 @@ pub fn render_colour(sh: Tensor<2>, ft: &FrozenTensors, background: [f32; 3]) ->
 }
 
 /// Renders all rays of `samples` in chunks of `chunk` rays without autodiff:
-/// interleaved RGB (not clamped: the image losses see what the gradient
-/// will be injected into).
-pub fn render_plain(sh: &Tensor<2>, samples: &FrozenSamples, background: [f32; 3], chunk: usize) -> Vec<f32> {
+/// `[rays, 3]` RGB on `sh`'s device (not clamped: the image losses see what
+/// the gradient will be injected into).
+pub fn render_rays(sh: &Tensor<2>, samples: &FrozenSamples, background: [f32; 3], chunk: usize) -> Tensor<2> {
     let device = sh.device();
-    let mut out = Vec::with_capacity(samples.num_rays * 3);
-    for (start, len) in chunk_ranges(samples.num_rays, chunk) {
-        let ft = samples.range(start, len).upload(&device);
-        out.extend(to_vec(render_colour(sh.clone(), &ft, background)));
+    let chunks: Vec<Tensor<2>> = chunk_ranges(samples.num_rays, chunk)
+        .map(|(start, len)| render_colour(sh.clone(), &samples.range(start, len).upload(&device), background))
+        .collect();
+    if chunks.is_empty() {
+        return Tensor::zeros([0, 3], &device);
     }
-    out
+    Tensor::cat(chunks, 0)
+}
+
+/// [`render_rays`] read back as interleaved RGB (one read for all chunks).
+pub fn render_plain(sh: &Tensor<2>, samples: &FrozenSamples, background: [f32; 3], chunk: usize) -> Vec<f32> {
+    if samples.num_rays == 0 {
+        return Vec::new();
+    }
+    to_vec(render_rays(sh, samples, background, chunk))
 }

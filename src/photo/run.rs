@@ -1,6 +1,7 @@
 //! `refnpr train`: a training run in a folder - start or resume, drive the
 //! steps, checkpoint, evaluate the test views, write `metrics.json`.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -17,6 +18,7 @@ use crate::util::backend::BackendKind;
 use crate::util::files;
 use crate::util::memory::peak_rss_mb;
 use crate::util::progress::{Event, Phase, Progress};
+use crate::util::transfer::{self, PhaseTransfers, Transfers};
 
 /// What `refnpr train` writes to `RUN/metrics.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -32,6 +34,11 @@ pub struct TrainMetrics {
     pub active_voxels: usize,
     pub per_view_psnr: Vec<f32>,
     pub peak_rss_mb: Option<f64>,
+    /// Host-device traffic (`util::transfer`) of this process's work:
+    /// `fit` (all steps, upsampling included), `fit_final_resolution` (the
+    /// steps after the last upsampling: the steady state), `evaluate`.
+    #[serde(default)]
+    pub transfers: BTreeMap<String, PhaseTransfers>,
 }
 
 /// Trains (or, with `resume`, continues) a run in `out`: checkpoints, test
@@ -50,13 +57,18 @@ pub fn run_training(
     let mut trainer = start(dataset, config, resume_from, backend, progress)?;
     files::write_toml(&out.join("config.toml"), &trainer.config)?;
     let started = Instant::now();
-    fit(&mut trainer, dataset, out, progress)?;
+    let mut transfers = fit(&mut trainer, dataset, out, progress)?;
     trainer.save(dataset, out)?;
     progress.event(Event::PhaseDone { phase: Phase::Fit, seconds: started.elapsed().as_secs_f64() });
     let t = Instant::now();
+    let before = transfer::counted();
     progress.info(format!("evaluating {} test views", dataset.test.len()));
     let report = evaluate(&trainer.grid, dataset, &dataset.test, &trainer.config, Some(&out.join("test")))?;
     progress.event(Event::PhaseDone { phase: Phase::Evaluate, seconds: t.elapsed().as_secs_f64() });
+    transfers.insert("evaluate".into(), PhaseTransfers::new(transfer::counted().since(before), dataset.test.len()));
+    for (phase, t) in &transfers {
+        progress.event(Event::Detail(t.describe(phase)));
+    }
     let metrics = TrainMetrics {
         test_psnr: report.psnr,
         test_ssim: report.ssim,
@@ -69,6 +81,7 @@ pub fn run_training(
         active_voxels: trainer.grid.num_rows(),
         per_view_psnr: report.per_view_psnr,
         peak_rss_mb: peak_rss_mb(),
+        transfers,
     };
     files::write_json(&out.join("metrics.json"), &metrics)?;
     Ok(metrics)
@@ -82,7 +95,7 @@ fn start(
     backend: BackendKind,
     progress: &dyn Progress,
 ) -> Result<Trainer> {
-    let device = backend.device();
+    let device = backend.open(progress)?;
     match resume_from {
         Some(ckpt) => {
             let t = Trainer::resume(dataset, ckpt, &device)?;
@@ -95,14 +108,30 @@ fn start(
 
 /// Runs the remaining steps, checkpointing every `checkpoint_every`.
 /// `train_seconds` counts the time since the last checkpoint, so a resumed
-/// run adds only what it did itself.
-fn fit(trainer: &mut Trainer, dataset: &Dataset, out: &Path, progress: &dyn Progress) -> Result<()> {
+/// run adds only what it did itself. Returns the steps' host-device traffic
+/// (checkpoint writes apart): `fit` and `fit_final_resolution`.
+fn fit(
+    trainer: &mut Trainer,
+    dataset: &Dataset,
+    out: &Path,
+    progress: &dyn Progress,
+) -> Result<BTreeMap<String, PhaseTransfers>> {
     let total = trainer.config.optim.steps;
+    // Steps after this one run on the final grid (the upsampling step itself rebuilds it).
+    let last_upsample = trainer.config.grid.upsample_steps.iter().copied().max();
+    let (mut all, mut steady) = ((Transfers::default(), 0), (Transfers::default(), 0));
     progress.event(Event::Start { phase: Phase::Fit, done: trainer.step, total });
     let mut segment = Instant::now();
     let mut rays_done = 0usize;
     while trainer.step < total {
+        let steady_step = last_upsample.is_none_or(|s| trainer.step > s);
+        let before = transfer::counted();
         let st = trainer.step_once()?;
+        let moved = transfer::counted().since(before);
+        all = (all.0.plus(moved), all.1 + 1);
+        if steady_step {
+            steady = (steady.0.plus(moved), steady.1 + 1);
+        }
         rays_done += trainer.config.optim.batch_rays;
         let rays_s = rays_done as f64 / segment.elapsed().as_secs_f64().max(1e-9);
         let message = format!(
@@ -122,5 +151,8 @@ fn fit(trainer: &mut Trainer, dataset: &Dataset, out: &Path, progress: &dyn Prog
         }
     }
     trainer.train_seconds += segment.elapsed().as_secs_f64();
-    Ok(())
+    Ok(BTreeMap::from([
+        ("fit".to_string(), PhaseTransfers::new(all.0, all.1)),
+        ("fit_final_resolution".to_string(), PhaseTransfers::new(steady.0, steady.1)),
+    ]))
 }

@@ -63,6 +63,8 @@ pub struct Trainer {
 pub struct StepStats {
     pub mse: f32,
     pub samples: usize,
+    /// The longest ray's samples (the renderer pads every ray to it).
+    pub max_samples_per_ray: usize,
     pub rows: usize,
 }
 
@@ -225,7 +227,12 @@ impl Trainer {
             }
         }
         self.step += 1;
-        Ok(StepStats { mse: mse_value, samples: batch.num_samples(), rows: self.subset.rows().len() })
+        Ok(StepStats {
+            mse: mse_value,
+            samples: batch.num_samples(),
+            max_samples_per_ray: batch.max_samples_per_ray(),
+            rows: self.subset.rows().len(),
+        })
     }
 
     /// The metadata a checkpoint of this run carries.

@@ -142,6 +142,9 @@ pub struct StylizeReport {
     pub post_colour_transfer: Option<ColourTransfer>,
     /// Seconds per phase: registration, refit, content (renders, features, TCM), image_epochs, smooth_update.
     pub seconds: BTreeMap<String, f64>,
+    /// Host-device traffic per phase (`util::transfer`): the same phases,
+    /// per step where a phase has steps, and the smooth update's new guides apart.
+    pub transfers: BTreeMap<String, crate::util::transfer::PhaseTransfers>,
     pub total_seconds: f64,
     pub peak_rss_mb: Option<f64>,
     pub final_losses: Option<CurvePoint>,

@@ -26,6 +26,7 @@ use crate::util::files;
 use crate::util::image::Image;
 use crate::util::memory::{available_memory_bytes, peak_rss_mb};
 use crate::util::progress::{Event, Phase, Progress, WarningLog};
+use crate::util::transfer::{self, PhaseTransfers};
 use crate::vgg::{self, VggLayer};
 
 /// `refnpr stylize`.
@@ -33,7 +34,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let started = Instant::now();
     let cfg = &job.config;
     cfg.validate()?;
-    let (ck, dataset) = checkpoint::load_run(&job.photo, job.data.as_deref(), &job.backend.device())?;
+    let (ck, dataset) = checkpoint::load_run(&job.photo, job.data.as_deref(), &job.backend.open(progress)?)?;
     let case = ReferenceCase::load(&job.case)?;
     if let Some(m) = case.scene_mismatch(&dataset) {
         bail!(
@@ -44,9 +45,11 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let image_size = preflight(job, &ck, &dataset)?;
     files::create_dir(&job.out)?;
     let mut seconds = BTreeMap::new();
+    let mut moved = BTreeMap::new();
     let mut warnings = WarningLog::new(progress);
 
     let t = Instant::now();
+    let before = transfer::counted();
     let registration = registration(job, &ck, &dataset, &case, &mut warnings)?;
     let registered_fraction = registration.fraction_overall();
     if job.method == Method::RefNpr && registration.views.iter().all(|v| v.registration.pixels.is_empty()) {
@@ -55,6 +58,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         );
     }
     seconds.insert("registration".to_string(), t.elapsed().as_secs_f64());
+    moved.insert("registration".to_string(), PhaseTransfers::new(transfer::counted().since(before), 0));
 
     let (styles, style_colours, colour_transfer) =
         style_side(job, &case, &dataset, &registration, ck.meta.background, &mut warnings)?;
@@ -64,13 +68,18 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         st.field.apply_colour_transfer(&tf);
     }
     let t = Instant::now();
+    let before = transfer::counted();
     st.refit(progress)?;
     seconds.insert("refit".to_string(), t.elapsed().as_secs_f64());
+    let refit_steps = st.curve.iter().filter(|p| p.phase == StepKind::Refit).count();
+    moved.insert("refit".to_string(), PhaseTransfers::new(transfer::counted().since(before), refit_steps));
 
     let t = Instant::now();
     let colour = job.method == Method::RefNpr && cfg.ablation.use_colour_loss && case.color_pre;
+    let before = transfer::counted();
     let (guidance, colour_matched) = st.guidance(&styles, keeps_content(job), colour, progress)?;
     seconds.insert("content".to_string(), t.elapsed().as_secs_f64());
+    moved.insert("content".to_string(), PhaseTransfers::new(transfer::counted().since(before), dataset.train.len()));
     if colour {
         // What L_color pulls each view towards, for inspection (small: one entry per 16x16 pixels).
         let [w, h] = image_size;
@@ -79,10 +88,17 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         files::write_json(&job.out.join("colour_targets.json"), &records)?;
     }
 
-    let (image_secs, smooth_secs) = st.image_epochs(&styles, guidance, progress)?;
-    seconds.insert("image_epochs".to_string(), image_secs);
-    seconds.insert("smooth_update".to_string(), smooth_secs);
-    progress.event(Event::PhaseDone { phase: Phase::ImageEpochs, seconds: image_secs + smooth_secs });
+    let epochs = st.image_epochs(&styles, guidance, progress)?;
+    seconds.insert("image_epochs".to_string(), epochs.image_seconds);
+    seconds.insert("smooth_update".to_string(), epochs.smooth_seconds);
+    moved.insert("image_epochs".to_string(), epochs.image_steps);
+    moved.insert("smooth_update".to_string(), epochs.smooth_steps);
+    moved.insert("smooth_update_guides".to_string(), epochs.smooth_guides);
+    progress
+        .event(Event::PhaseDone { phase: Phase::ImageEpochs, seconds: epochs.image_seconds + epochs.smooth_seconds });
+    for (phase, t) in &moved {
+        progress.event(Event::Detail(t.describe(phase)));
+    }
 
     let post_colour_transfer = match style_colours.filter(|_| cfg.arf.post_transfer) {
         Some(style) => {
@@ -110,6 +126,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         post_colour_transfer,
         total_seconds: started.elapsed().as_secs_f64(),
         seconds,
+        transfers: moved,
         peak_rss_mb: peak_rss_mb(),
         final_losses: st.curve.iter().rev().find(|p| p.phase != StepKind::Refit).cloned(),
         curve: std::mem::take(&mut st.curve),

@@ -34,13 +34,19 @@ use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
 use crate::util::image::Image;
 use crate::util::progress::{Event, Phase, Progress};
 use crate::util::rng::{Stream, epoch_rng, step_rng};
-use crate::util::tensor::{floats, image_tensor, scalar};
+use crate::util::tensor::{floats, scalar, to_vec};
+use crate::util::transfer::{self, PhaseTransfers, Transfers};
 use crate::vgg::{Vgg16, VggLayer};
 
 /// The interleaved `[pixels, 3]` gradient of an image loss (planar `[1, 3, H, W]` gradient in).
 fn interleaved(grad: Tensor<4>) -> Tensor<2> {
     let [_, c, h, w] = grad.dims();
     grad.reshape([c, h * w]).transpose()
+}
+
+/// Rendered colours `[h * w, 3]` (row-major pixels) as a `[1, 3, h, w]` image: the inverse of `interleaved`.
+fn planar_image(rgb: Tensor<2>, w: usize, h: usize) -> Tensor<4> {
+    rgb.transpose().reshape([1, 3, h, w])
 }
 
 /// Per-view data kept for the image epochs.
@@ -67,6 +73,48 @@ struct ImageLosses {
     colour: f32,
     content: f32,
     image_tv: f32,
+}
+
+/// What the image epochs cost: seconds, and host-device traffic per step
+/// (image epochs, smooth update) and of the smooth update's new guides.
+pub struct EpochCosts {
+    pub image_seconds: f64,
+    pub smooth_seconds: f64,
+    pub image_steps: PhaseTransfers,
+    pub smooth_steps: PhaseTransfers,
+    pub smooth_guides: PhaseTransfers,
+}
+
+/// The loss parts of an image step, kept on the device until the step
+/// ends and then read back in one transfer: on a GPU every read waits for
+/// the queue, and these values only feed the progress line and the curve.
+#[derive(Default)]
+struct LossParts {
+    image_tv: Option<Tensor<1>>,
+    feature: Option<Tensor<1>>,
+    colour: Option<Tensor<1>>,
+    content: Option<Tensor<1>>,
+}
+
+impl LossParts {
+    /// Adds `value`'s (detached) value to a part.
+    fn add(part: &mut Option<Tensor<1>>, value: &Tensor<1>) {
+        let value = value.clone().inner();
+        *part = Some(match part.take() {
+            None => value,
+            Some(sum) => sum + value,
+        });
+    }
+
+    /// All parts and the total, read in one transfer (absent parts are 0).
+    fn read(self, total: &Tensor<1>) -> ImageLosses {
+        let parts = [self.image_tv, self.feature, self.colour, self.content, Some(total.clone().inner())];
+        let present: Vec<Tensor<1>> = parts.iter().flatten().cloned().collect();
+        let mut values = to_vec(Tensor::cat(present, 0)).into_iter();
+        let [image_tv, feature, colour, content, total] =
+            parts.map(|p| p.map_or(0.0, |_| values.next().expect("one value per present part")));
+        ImageLosses { total, feature, colour, content, image_tv }
+    }
 }
 
 /// A stylization in progress: the field, its frozen sample lists, VGG16,
@@ -192,7 +240,7 @@ impl<'a> Stylizer<'a> {
         styles: &[Image],
         mut guidance: Guidance,
         progress: &dyn Progress,
-    ) -> Result<(f64, f64)> {
+    ) -> Result<EpochCosts> {
         let s = &self.cfg.schedule;
         let views = self.dataset.train.len();
         let total_steps = s.image_epochs * views;
@@ -207,20 +255,32 @@ impl<'a> Stylizer<'a> {
         }
         let started = std::time::Instant::now();
         let mut smooth_started = None;
+        // Per-step traffic, the smooth update's guides (content renders) apart.
+        let (mut image_moved, mut smooth_moved, mut guides_moved) =
+            (Transfers::default(), Transfers::default(), Transfers::default());
         progress.event(Event::Start { phase: Phase::ImageEpochs, done: 0, total: total_steps });
         let mut step = 0;
         for epoch in 0..s.image_epochs {
             let smooth = epoch >= smooth_start;
             if smooth && smooth_started.is_none() {
                 smooth_started = Some(std::time::Instant::now());
+                let before = transfer::counted();
                 let t = self.template(styles)?;
                 guidance.guides = self.guides(Some(&t), false, false, progress)?.0;
                 guidance.template = Some(t);
+                guides_moved = transfer::counted().since(before);
             }
             let mut order: Vec<usize> = (0..views).collect();
             order.shuffle(&mut epoch_rng(self.cfg.seed, epoch));
             for v in order {
+                let before = transfer::counted();
                 let point = self.image_step(v, step, total_steps, &guidance, smooth)?;
+                let moved = transfer::counted().since(before);
+                if smooth {
+                    smooth_moved = smooth_moved.plus(moved);
+                } else {
+                    image_moved = image_moved.plus(moved);
+                }
                 let message = format!(
                     "epoch {}/{} {:?} | total {:.4} ref {:.4} feat {:.4} colour {:.4}",
                     epoch + 1,
@@ -237,7 +297,13 @@ impl<'a> Stylizer<'a> {
             }
         }
         let smooth_secs = smooth_started.map(|t| t.elapsed().as_secs_f64()).unwrap_or(0.0);
-        Ok((started.elapsed().as_secs_f64() - smooth_secs, smooth_secs))
+        Ok(EpochCosts {
+            image_seconds: started.elapsed().as_secs_f64() - smooth_secs,
+            smooth_seconds: smooth_secs,
+            image_steps: PhaseTransfers::new(image_moved, smooth_start * views),
+            smooth_steps: PhaseTransfers::new(smooth_moved, (s.image_epochs - smooth_start) * views),
+            smooth_guides: PhaseTransfers::new(guides_moved, 0),
+        })
     }
 
     /// One image step on training view `v`: the image losses by deferred
@@ -446,7 +512,8 @@ impl<'a> Stylizer<'a> {
         weight: f32,
     ) -> (Tensor<2>, f32) {
         let scale = weight / (3.0 * samples.num_rays.max(1) as f32);
-        let value = std::cell::Cell::new(0.0f32);
+        // Summed on the device and read once (a read per chunk would wait for the queue each time).
+        let value: std::cell::RefCell<Option<Tensor<1>>> = std::cell::RefCell::new(None);
         let grad = chunked_gradient(
             &self.field.grid.sh,
             samples,
@@ -456,11 +523,11 @@ impl<'a> Stylizer<'a> {
             &|rgb, start, len| {
                 let d = rgb - target.clone().narrow(0, start, len);
                 let loss = (d.clone() * d).sum() * scale;
-                value.set(value.get() + scalar(loss.clone().inner()));
+                LossParts::add(&mut value.borrow_mut(), &loss);
                 loss
             },
         );
-        (grad, value.get())
+        (grad, value.into_inner().map_or(0.0, scalar))
     }
 
     /// Caches sample lists up to the configured memory: first the
@@ -558,10 +625,10 @@ impl<'a> Stylizer<'a> {
     ) -> Result<(Tensor<2>, ImageLosses)> {
         let cam = &self.dataset.train[v].camera;
         let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
-        // 1. Full image, no autodiff.
-        let rgb = frozen::render_plain(&self.field.grid.sh, samples, self.background, self.cfg.render_chunk);
+        // 1. Full image, no autodiff; it stays on the device.
+        let rgb = frozen::render_rays(&self.field.grid.sh, samples, self.background, self.cfg.render_chunk);
         // 2. Image losses on a leaf image, gradient with respect to the image.
-        let image = image_tensor(&rgb, w, h, &self.ad).require_grad();
+        let image = planar_image(rgb, w, h).autodiff().require_grad();
         let (loss, parts) = self.image_loss(image.clone(), guide, template, style_bank, smooth)?;
         let grads = loss.backward();
         let Some(g) = image.grad(&grads) else { bail!("the image losses do not depend on the image") };
@@ -588,9 +655,10 @@ impl<'a> Stylizer<'a> {
     ) -> Result<(Tensor<1>, ImageLosses)> {
         let [_, _, h, w] = image.dims();
         let l = &self.cfg.loss;
-        let mut parts = ImageLosses::default();
-        let mut total = losses::image_tv(image.clone()) * l.image_tv;
-        parts.image_tv = scalar(total.clone().inner()) / l.image_tv.max(1e-12);
+        let mut parts = LossParts::default();
+        let tv = losses::image_tv(image.clone());
+        LossParts::add(&mut parts.image_tv, &tv);
+        let mut total = tv * l.image_tv;
         match self.job.method {
             Method::RefNpr => {
                 let template = template.expect("Ref-NPR has a template");
@@ -601,11 +669,11 @@ impl<'a> Stylizer<'a> {
                         if smooth { (l.smooth_feature, 0.0) } else { (l.feature, l.content) };
                     for (b, r) in render.into_iter().enumerate() {
                         let style = losses::cosine_distance(r.clone(), template.guidance(b, &guide.matches[b]));
-                        parts.feature += scalar(style.clone().inner());
+                        LossParts::add(&mut parts.feature, &style);
                         total = total + style * weight;
                         if content_weight > 0.0 && b < guide.content.len() {
                             let c = losses::content_loss(r, guide.content[b].clone());
-                            parts.content += scalar(c.clone().inner());
+                            LossParts::add(&mut parts.content, &c);
                             total = total + c * (weight * content_weight);
                         }
                     }
@@ -617,7 +685,7 @@ impl<'a> Stylizer<'a> {
                         WhiteOn::Render => c.mask.clone() * losses::not_white(patches.clone().detach(), l.colour_white),
                     };
                     let loss = losses::colour_loss(patches, c.target.clone(), mask, l.colour_norm);
-                    parts.colour = scalar(loss.clone().inner());
+                    LossParts::add(&mut parts.colour, &loss);
                     total = total + loss * l.colour;
                 }
             }
@@ -631,16 +699,16 @@ impl<'a> Stylizer<'a> {
                     style_bank.expect("ARF has a style bank").clone(),
                     self.cfg.search_chunk,
                 );
-                parts.feature = scalar(nnfm.clone().inner());
+                LossParts::add(&mut parts.feature, &nnfm);
                 total = total + nnfm * a.nnfm;
                 if let (true, Some(content)) = (a.content > 0.0, guide.content.first()) {
                     let c = losses::content_loss(render, content.clone());
-                    parts.content = scalar(c.clone().inner());
+                    LossParts::add(&mut parts.content, &c);
                     total = total + c * a.content;
                 }
             }
         }
-        parts.total = scalar(total.clone().inner());
+        let parts = parts.read(&total);
         Ok((total, parts))
     }
 

@@ -1,7 +1,8 @@
 //! Around the pipeline: benchmarks (`bench`), the one-command demo on the
-//! procedural scene (`demo`), and a painterly repaint filter to try
+//! procedural scene (`demo`), `info` (what the build runs on), and a painterly repaint filter to try
 //! stylization without painting by hand (`paint`).
 
 pub mod bench;
 pub mod demo;
+pub mod info;
 pub mod paint;

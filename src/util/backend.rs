@@ -5,9 +5,15 @@
 //! `wgpu` on the command line (`--backend`) or through `REFNPR_BACKEND`.
 
 use anyhow::{Result, anyhow};
-use burn::tensor::{Device, DeviceKind};
+use burn::tensor::Device;
+use burn::tensor::wgpu::wgpu;
 use clap::ValueEnum;
+use serde::Serialize;
 use std::fmt;
+use std::sync::OnceLock;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use crate::util::progress::Progress;
 
 /// Environment variable that selects the backend for the tests and the CLI default.
 pub const BACKEND_ENV: &str = "REFNPR_BACKEND";
@@ -39,14 +45,31 @@ impl BackendKind {
         }
     }
 
-    /// The plain (no autodiff) device of this backend.
+    /// The plain (no autodiff) device of this backend. For wgpu this brings
+    /// the runtime up on first use and panics if no adapter exists: entry
+    /// points call [`BackendKind::open`] first, which says so as an error.
     #[allow(deprecated)] // ndarray is deprecated upstream but still a supported choice here
     pub fn device(self) -> Device {
         match self {
             BackendKind::Flex => Device::flex(),
             BackendKind::Ndarray => Device::ndarray(),
-            BackendKind::Wgpu => Device::wgpu(DeviceKind::DefaultDevice),
+            BackendKind::Wgpu => wgpu_runtime().map(|r| r.device.clone()).unwrap_or_else(|e| panic!("{e:#}")),
         }
+    }
+
+    /// The device, brought up with a clear error when it cannot be: for
+    /// wgpu, the first call in a process also reports the adapter it runs
+    /// on (and warns when that adapter is a CPU).
+    pub fn open(self, progress: &dyn Progress) -> Result<Device> {
+        if self != BackendKind::Wgpu {
+            return Ok(self.device());
+        }
+        let runtime = wgpu_runtime()?;
+        static ANNOUNCED: AtomicBool = AtomicBool::new(false);
+        if !ANNOUNCED.swap(true, Ordering::SeqCst) {
+            announce_wgpu(progress)?;
+        }
+        Ok(runtime.device.clone())
     }
 
     /// The same device with autodiff enabled.
@@ -59,4 +82,119 @@ impl fmt::Display for BackendKind {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.to_possible_value().expect("no skipped variants").get_name())
     }
+}
+
+/// What wgpu runs on: the adapter as the graphics API describes it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct AdapterSummary {
+    pub name: String,
+    /// discrete GPU, integrated GPU, virtual GPU, CPU or other.
+    pub kind: String,
+    /// Vulkan, Metal, Dx12, Gl, ...
+    pub api: String,
+    pub driver: String,
+    /// Software rendering (Mesa's llvmpipe/lavapipe, SwiftShader, WARP): a CPU.
+    pub software: bool,
+}
+
+/// How much slower than flex the renderer runs on a software adapter, as
+/// measured on the 2-core machine this project is built on: forward +
+/// backward rays/s at 128³, `refnpr bench --backends flex,wgpu --res 128`
+/// with Mesa's lavapipe, 50076 vs 4292 (README, "wgpu without a GPU").
+pub const SOFTWARE_ADAPTER_SLOWDOWN: &str = "about 12x";
+
+impl AdapterSummary {
+    pub fn of(info: &wgpu::AdapterInfo) -> Self {
+        let kind = match info.device_type {
+            wgpu::DeviceType::DiscreteGpu => "discrete GPU",
+            wgpu::DeviceType::IntegratedGpu => "integrated GPU",
+            wgpu::DeviceType::VirtualGpu => "virtual GPU",
+            wgpu::DeviceType::Cpu => "CPU",
+            wgpu::DeviceType::Other => "other",
+        };
+        let driver = [info.driver.as_str(), info.driver_info.as_str()]
+            .into_iter()
+            .filter(|s| !s.is_empty())
+            .collect::<Vec<_>>()
+            .join(" ");
+        Self {
+            name: info.name.clone(),
+            kind: kind.to_string(),
+            api: format!("{:?}", info.backend),
+            driver,
+            software: info.device_type == wgpu::DeviceType::Cpu,
+        }
+    }
+
+    /// `wgpu adapter: NAME (KIND, API; driver DRIVER)`.
+    pub fn line(&self) -> String {
+        let driver = if self.driver.is_empty() { String::new() } else { format!("; driver {}", self.driver) };
+        format!("wgpu adapter: {} ({}, {}{driver})", self.name, self.kind, self.api)
+    }
+
+    /// The warning a software adapter deserves (None for a GPU).
+    pub fn software_warning(&self) -> Option<String> {
+        self.software.then(|| {
+            format!(
+                "wgpu found no GPU and runs on {}, a software rasterizer on the CPU: {SOFTWARE_ADAPTER_SLOWDOWN} \
+                 slower than the flex backend. Use `--backend flex` (or REFNPR_BACKEND=flex) unless you are testing wgpu.",
+                self.name
+            )
+        })
+    }
+}
+
+/// The wgpu device of this process and its adapter.
+struct WgpuRuntime {
+    device: Device,
+    adapter: AdapterSummary,
+}
+
+/// Brings the wgpu runtime up once per process (Burn registers one runtime
+/// per device selector; a second registration is refused).
+fn wgpu_runtime() -> Result<&'static WgpuRuntime> {
+    static RUNTIME: OnceLock<std::result::Result<WgpuRuntime, String>> = OnceLock::new();
+    RUNTIME
+        .get_or_init(|| {
+            Device::wgpu_options()
+                .init_with_setup()
+                .map(|(device, setup)| WgpuRuntime { device, adapter: AdapterSummary::of(&setup.adapter.get_info()) })
+                .map_err(|e| e.to_string())
+        })
+        .as_ref()
+        .map_err(|e| {
+            anyhow!(
+                "the wgpu backend found no usable adapter ({e}). Without a GPU, Mesa's software Vulkan \
+                 provides one (Debian/Ubuntu: apt-get install mesa-vulkan-drivers libvulkan1); or use --backend flex"
+            )
+        })
+}
+
+/// Reports the adapter wgpu runs on (and warns when it is a CPU): what
+/// [`BackendKind::open`] says the first time in a process.
+pub fn announce_wgpu(progress: &dyn Progress) -> Result<AdapterSummary> {
+    let adapter = wgpu_adapter()?;
+    progress.info(adapter.line());
+    if let Some(w) = adapter.software_warning() {
+        progress.warning(w);
+    }
+    Ok(adapter)
+}
+
+/// The adapter wgpu runs on in this process (bringing the runtime up).
+pub fn wgpu_adapter() -> Result<AdapterSummary> {
+    Ok(wgpu_runtime()?.adapter.clone())
+}
+
+/// Every adapter wgpu can see, on every graphics API compiled in (for
+/// `refnpr info`; does not bring the runtime up).
+pub fn wgpu_adapters() -> Vec<AdapterSummary> {
+    let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
+        backends: wgpu::Backends::all(),
+        ..wgpu::InstanceDescriptor::new_without_display_handle()
+    });
+    futures_lite::future::block_on(instance.enumerate_adapters(wgpu::Backends::all()))
+        .iter()
+        .map(|a| AdapterSummary::of(&a.get_info()))
+        .collect()
 }

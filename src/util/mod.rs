@@ -1,6 +1,6 @@
 //! Generic helpers every stage uses: the backend choice, tensor conversions,
 //! the one `Image` type with PNG/GIF/npy I/O, file writes that name the file
-//! on failure, progress events, per-step random generators, memory readings.
+//! on failure, progress events, per-step random generators, memory readings, host-device traffic counts.
 
 pub mod backend;
 pub mod config;
@@ -11,6 +11,7 @@ pub mod npy;
 pub mod progress;
 pub mod rng;
 pub mod tensor;
+pub mod transfer;
 
 /// `(start, len)` of consecutive pieces of at most `chunk` items covering
 /// `0..total` (a `chunk` of 0 counts as 1).

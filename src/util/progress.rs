@@ -54,6 +54,8 @@ pub enum Event {
     Info(String),
     /// Something that may give a poor result, though the work goes on.
     Warning(String),
+    /// A figure for `--verbose` output (host-device traffic per phase).
+    Detail(String),
 }
 
 /// Where events go.
@@ -82,13 +84,22 @@ const PLAIN_LINES_PER_PHASE: usize = 20;
 /// Bars on a terminal, plain lines on stderr otherwise.
 pub struct Console {
     terminal: bool,
+    /// Whether `Event::Detail` lines are printed.
+    verbose: bool,
     /// The phase whose bar is shown, and the bar.
     bar: Mutex<Option<(Phase, ProgressBar)>>,
 }
 
 impl Default for Console {
     fn default() -> Self {
-        Self { terminal: std::io::stderr().is_terminal(), bar: Mutex::new(None) }
+        Self { terminal: std::io::stderr().is_terminal(), verbose: false, bar: Mutex::new(None) }
+    }
+}
+
+impl Console {
+    /// A console that also prints the `Event::Detail` lines.
+    pub fn verbose(verbose: bool) -> Self {
+        Self { verbose, ..Self::default() }
     }
 }
 
@@ -156,6 +167,8 @@ impl Progress for Console {
             }
             Event::Info(text) => self.line(text),
             Event::Warning(text) => self.line(format!("warning: {text}")),
+            Event::Detail(text) if self.verbose => self.line(text),
+            Event::Detail(_) => {}
         }
     }
 }

@@ -1,20 +1,27 @@
-//! Small conversions between plain Rust buffers and Burn tensors.
+//! Small conversions between plain Rust buffers and Burn tensors: the one
+//! place the library moves values between host and device (each move is
+//! counted by `util::transfer`).
 
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
 
+use crate::util::transfer;
+
 /// A float tensor of the given shape from a flat row-major buffer.
 pub fn floats<const D: usize>(values: Vec<f32>, shape: [usize; D], device: &Device) -> Tensor<D> {
+    transfer::record_upload(values.len() * 4);
     Tensor::from_data(TensorData::new(values, shape), device)
 }
 
 /// A 1-D index tensor.
 pub fn indices(values: Vec<i32>, device: &Device) -> Tensor<1, Int> {
     let n = values.len();
+    transfer::record_upload(n * 4);
     Tensor::from_data(TensorData::new(values, [n]), device)
 }
 
 /// The tensor's values as a flat `Vec<f32>` (row-major).
 pub fn to_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    transfer::record_read(t.shape().num_elements() * 4);
     t.into_data().convert::<f32>().try_into_vec::<f32>().expect("float tensor data converts to f32")
 }
 

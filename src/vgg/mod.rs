@@ -190,7 +190,9 @@ impl Vgg16 {
     /// The ImageNet weights embedded at build time, on `device`. The weights
     /// never require gradients (gradients flow to the input image only).
     pub fn load(device: &Device) -> Self {
-        Self { model: Model::from_embedded(device).no_grad() }
+        let model = Model::from_embedded(device).no_grad();
+        crate::util::transfer::record_upload(model.num_params() * 4);
+        Self { model }
     }
 
     /// The same architecture with Burn's default random initialisation under
