@@ -249,8 +249,12 @@ fn wgpu_names_its_adapter_and_warns_on_a_cpu() {
         api: "Vulkan".into(),
         driver: "NVIDIA 560".into(),
         software: false,
+        max_buffer_bytes: 2_147_483_648,
     };
-    assert_eq!(gpu.line(), "wgpu adapter: NVIDIA H100 (discrete GPU, Vulkan; driver NVIDIA 560)");
+    assert_eq!(
+        gpu.line(),
+        "wgpu adapter: NVIDIA H100 (discrete GPU, Vulkan; driver NVIDIA 560; buffers up to 2.15 GB)"
+    );
     assert!(gpu.software_warning().is_none());
     let cpu = AdapterSummary { name: "llvmpipe".into(), kind: "CPU".into(), software: true, ..gpu };
     let w = cpu.software_warning().expect("a CPU adapter is warned about");
@@ -271,6 +275,7 @@ fn wgpu_names_its_adapter_and_warns_on_a_cpu() {
     assert_eq!(events[0], Event::Info(adapter.line()));
     assert!(adapter.line().starts_with("wgpu adapter: ") && !adapter.name.is_empty(), "{}", adapter.line());
     assert_eq!(events.len(), if adapter.software { 2 } else { 1 }, "{events:?}");
+    assert!(adapter.max_buffer_bytes >= 1 << 27, "{}", adapter.line());
     if adapter.software {
         assert!(matches!(&events[1], Event::Warning(w) if w.contains("--backend flex")), "{events:?}");
     }

@@ -175,3 +175,30 @@ fn a_training_step_moves_its_batch_not_the_grid() {
     // 52 B per grid row, so it cannot pass unnoticed.
     assert!(tr.grid.num_rows() >= st.rows);
 }
+
+/// A step whose SH gather (8 corners x 27 coefficients per sample) would not
+/// fit in one of the wgpu adapter's buffers is refused with the fix named,
+/// instead of failing inside wgpu (lavapipe in CI: 128 MiB, and this
+/// first step of 4096 rays through a fresh grid gathers about 160 MB);
+/// a step that fits runs. The CPU backends have no such limit.
+#[test]
+fn a_step_too_large_for_the_adapters_buffers_is_refused_with_the_fix() {
+    use refnpr::util::backend::max_buffer_bytes;
+    let t = TempDir::new("buffers");
+    let ds = tiny_scene(&t.path().join("scene"));
+    let mut cfg = common::quick_blender_config(24, 40, 20, 40, 4096);
+    cfg.grid.sh_degree = 2;
+    let dev = common::device();
+    let mut tr = Trainer::new(&ds, cfg, &dev).unwrap();
+    match (tr.step_once(), max_buffer_bytes(&dev)) {
+        (Ok(st), limit) => {
+            let need = st.samples as u64 * 8 * 27 * 4;
+            assert!(limit.is_none_or(|l| need <= l), "{need} B gathered past the limit {limit:?}");
+        }
+        (Err(e), limit) => {
+            let e = format!("{e:#}");
+            assert!(limit.is_some(), "only a buffer limit refuses a step: {e}");
+            assert!(e.contains("largest buffer") && e.contains("batch_rays") && e.contains("--backend flex"), "{e}");
+        }
+    }
+}

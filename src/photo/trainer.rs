@@ -10,7 +10,7 @@
 //! Plenoxels' sparse updates). Cost per step is proportional to the batch,
 //! not to the grid (RMSprop and TV: `field::optim`).
 
-use anyhow::Result;
+use anyhow::{Result, bail};
 use burn::tensor::{Device, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -19,13 +19,15 @@ use std::path::Path;
 use crate::field::checkpoint::{self, CheckpointMeta};
 use crate::field::composite::{self, BatchTensors};
 use crate::field::grid::{GridGeometry, RadianceGrid};
-use crate::field::march::{BlockOccupancy, Marcher};
+use crate::field::march::{BlockOccupancy, Marcher, SampleBatch};
 use crate::field::optim::{RmsStart, Rmsprop, RowSubset, TvNorm, log_lerp, total_variation};
 use crate::photo::config::TrainConfig;
 use crate::scene::camera::Ray;
 use crate::scene::data::Dataset;
+use crate::util::backend::max_buffer_bytes;
 use crate::util::rng::{Stream, step_rng};
 use crate::util::tensor::{floats, indices, scalar, select_rows, to_vec};
+use crate::util::transfer::human_bytes;
 
 /// RMSprop running averages of squared gradients, one per grid row.
 pub struct RmsState {
@@ -116,6 +118,29 @@ fn step_rows(
     TvNeighbours { neighbours, num_core }
 }
 
+/// Refuses a batch whose largest tensor, the 8 corner rows of SH
+/// coefficients gathered per sample, would exceed what the device's kernels
+/// may bind (wgpu's storage-buffer limit: 128 MiB on Mesa's lavapipe): wgpu
+/// would otherwise fail inside the step and the failure surface later, far
+/// from its cause.
+fn check_buffer_limit(batch: &SampleBatch, num_basis: usize, device: &Device) -> Result<()> {
+    let Some(limit) = max_buffer_bytes(device) else { return Ok(()) };
+    let need = batch.num_samples() as u64 * 8 * 3 * num_basis as u64 * 4;
+    if need > limit {
+        bail!(
+            "this step's {} samples need a {} tensor (8 corners x {} SH coefficients each), more than the \
+             wgpu adapter's largest buffer ({}): lower [optim] batch_rays (now {}), use a lower grid.sh_degree, \
+             or use --backend flex",
+            batch.num_samples(),
+            human_bytes(need),
+            3 * num_basis,
+            human_bytes(limit),
+            batch.num_rays
+        );
+    }
+    Ok(())
+}
+
 impl Trainer {
     /// A fresh run on a dataset.
     pub fn new(dataset: &Dataset, config: TrainConfig, backend_device: &Device) -> Result<Self> {
@@ -196,6 +221,7 @@ impl Trainer {
 
         let occupancy = self.occupancy.get_or_insert_with(|| BlockOccupancy::of(&self.grid));
         let batch = Marcher::with_occupancy(&self.grid, occupancy).samples(&rays, &cfg.march);
+        check_buffer_limit(&batch, self.grid.num_basis(), &plain)?;
         let local = step_rows(&self.grid, &batch.corner_rows, &mut self.subset, cfg.optim.tv_fraction, &mut rng);
         let rows_t = indices(self.subset.rows().to_vec(), &plain);
         let subset = &self.subset;

@@ -14,6 +14,7 @@ use std::sync::OnceLock;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use crate::util::progress::Progress;
+use crate::util::transfer::human_bytes;
 
 /// Environment variable that selects the backend for the tests and the CLI default.
 pub const BACKEND_ENV: &str = "REFNPR_BACKEND";
@@ -95,6 +96,9 @@ pub struct AdapterSummary {
     pub driver: String,
     /// Software rendering (Mesa's llvmpipe/lavapipe, SwiftShader, WARP): a CPU.
     pub software: bool,
+    /// The largest storage buffer a kernel may bind: no tensor may be larger
+    /// (Mesa's lavapipe: 128 MiB; discrete GPUs: gigabytes).
+    pub max_buffer_bytes: u64,
 }
 
 /// How much slower than flex the renderer runs on a software adapter, as
@@ -104,7 +108,7 @@ pub struct AdapterSummary {
 pub const SOFTWARE_ADAPTER_SLOWDOWN: &str = "about 12x";
 
 impl AdapterSummary {
-    pub fn of(info: &wgpu::AdapterInfo) -> Self {
+    pub fn of(info: &wgpu::AdapterInfo, limits: &wgpu::Limits) -> Self {
         let kind = match info.device_type {
             wgpu::DeviceType::DiscreteGpu => "discrete GPU",
             wgpu::DeviceType::IntegratedGpu => "integrated GPU",
@@ -123,13 +127,15 @@ impl AdapterSummary {
             api: format!("{:?}", info.backend),
             driver,
             software: info.device_type == wgpu::DeviceType::Cpu,
+            max_buffer_bytes: limits.max_storage_buffer_binding_size,
         }
     }
 
-    /// `wgpu adapter: NAME (KIND, API; driver DRIVER)`.
+    /// `wgpu adapter: NAME (KIND, API; driver DRIVER; buffers up to SIZE)`.
     pub fn line(&self) -> String {
         let driver = if self.driver.is_empty() { String::new() } else { format!("; driver {}", self.driver) };
-        format!("wgpu adapter: {} ({}, {}{driver})", self.name, self.kind, self.api)
+        let buffers = human_bytes(self.max_buffer_bytes);
+        format!("wgpu adapter: {} ({}, {}{driver}; buffers up to {buffers})", self.name, self.kind, self.api)
     }
 
     /// The warning a software adapter deserves (None for a GPU).
@@ -158,7 +164,10 @@ fn wgpu_runtime() -> Result<&'static WgpuRuntime> {
         .get_or_init(|| {
             Device::wgpu_options()
                 .init_with_setup()
-                .map(|(device, setup)| WgpuRuntime { device, adapter: AdapterSummary::of(&setup.adapter.get_info()) })
+                .map(|(device, setup)| WgpuRuntime {
+                    device,
+                    adapter: AdapterSummary::of(&setup.adapter.get_info(), &setup.device.limits()),
+                })
                 .map_err(|e| e.to_string())
         })
         .as_ref()
@@ -181,6 +190,14 @@ pub fn announce_wgpu(progress: &dyn Progress) -> Result<AdapterSummary> {
     Ok(adapter)
 }
 
+/// The largest tensor, in bytes, a kernel on `device` may bind: the wgpu
+/// adapter's storage-buffer limit; None on the CPU backends (no limit but memory).
+pub fn max_buffer_bytes(device: &Device) -> Option<u64> {
+    // The CPU backends report no device identity; the cubecl (GPU) ones do.
+    device.identity()?;
+    wgpu_runtime().ok().map(|r| r.adapter.max_buffer_bytes)
+}
+
 /// The adapter wgpu runs on in this process (bringing the runtime up).
 pub fn wgpu_adapter() -> Result<AdapterSummary> {
     Ok(wgpu_runtime()?.adapter.clone())
@@ -195,6 +212,6 @@ pub fn wgpu_adapters() -> Vec<AdapterSummary> {
     });
     futures_lite::future::block_on(instance.enumerate_adapters(wgpu::Backends::all()))
         .iter()
-        .map(|a| AdapterSummary::of(&a.get_info()))
+        .map(|a| AdapterSummary::of(&a.get_info(), &a.limits()))
         .collect()
 }
