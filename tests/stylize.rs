@@ -19,7 +19,9 @@ use refnpr::field::optim::{RmsStart, Rmsprop};
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
 use refnpr::scene::data::{self, procedural};
 use refnpr::stylize::config::{ColourNorm, StylizeConfig};
-use refnpr::stylize::field::{ShTv, StepRows, StyleField, chunked_gradient};
+use refnpr::stylize::field::{
+    DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, render_chunks,
+};
 use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::tcm::Template;
 use refnpr::stylize::{Method, StylizeJob, losses};
@@ -357,6 +359,14 @@ fn deferred_backprop_equals_direct_backprop() {
     let deferred = to_vec(chunked_gradient(&grid.sh, &samples, bg, 173, &rows, &|rgb, start, len| {
         (rgb * g.clone().narrow(0, start, len)).sum()
     }));
+    // The image step's form: chunks uploaded once, rendered, then re-rendered
+    // with autodiff: the same colours and the same gradient, bit for bit.
+    let chunks = DeviceChunk::upload_all(&samples, 173, &grid.sh);
+    assert_eq!(to_vec(render_chunks(&grid.sh, &chunks, bg)), frozen);
+    let reused = to_vec(chunks_gradient(&grid.sh, &chunks, bg, &rows, &|rgb, start, len| {
+        (rgb * g.clone().narrow(0, start, len)).sum()
+    }));
+    assert_eq!(reused, deferred);
     // Sparse: the touched rows' gradients, in touched order; nothing elsewhere.
     let mut touched = StepRows::sparse(grid.num_rows());
     touched.add(&samples.corner_rows);

@@ -197,13 +197,105 @@ impl StyleField {
     }
 }
 
-/// d/d(sh) of the sum over ray chunks of `loss_of(rendered chunk, first ray, rays)`:
-/// each chunk is rendered with autodiff and back-propagated on its own, so
-/// memory is bounded by the chunk (the second half of deferred back-propagation).
-/// The autodiff leaf of a chunk is only the rows its samples touch (a grid
-/// has millions of rows, a chunk touches a few percent of them); their
-/// gradients are added into the step's buffer (`rows`: grid-sized, or one
-/// row per touched row, the samples' rows among them).
+/// A chunk of rays on the device, ready for both passes of deferred
+/// back-propagation: its sample lists with corner rows renumbered to the
+/// rows the chunk touches, and those rows. Uploaded once per step, it
+/// serves the plain render and the re-render with autodiff.
+pub struct DeviceChunk {
+    /// The chunk's first ray and its number of rays.
+    start: usize,
+    len: usize,
+    /// The grid rows the chunk's samples touch, in local order.
+    rows: Vec<i32>,
+    rows_t: Tensor<1, Int>,
+    samples: frozen::FrozenTensors,
+}
+
+impl DeviceChunk {
+    /// Rays `start..start + len` of `samples`, renumbered through `subset`
+    /// (reused between chunks: resetting it clears only what it set).
+    fn upload(
+        samples: &FrozenSamples,
+        start: usize,
+        len: usize,
+        num_grid_rows: usize,
+        subset: &mut RowSubset,
+        device: &burn::tensor::Device,
+    ) -> Self {
+        let mut part = samples.range(start, len);
+        subset.reset_to(num_grid_rows, &part.corner_rows);
+        for r in part.corner_rows.iter_mut() {
+            *r = subset.local(*r);
+        }
+        let rows = subset.rows().to_vec();
+        Self { start, len, rows_t: indices(rows.clone(), device), rows, samples: part.upload(device) }
+    }
+
+    /// Every chunk of `samples`, uploaded.
+    pub fn upload_all(samples: &FrozenSamples, chunk: usize, sh: &Tensor<2>) -> Vec<DeviceChunk> {
+        let device = sh.device();
+        let mut subset = RowSubset::default();
+        chunk_ranges(samples.num_rays, chunk)
+            .map(|(start, len)| Self::upload(samples, start, len, sh.dims()[0], &mut subset, &device))
+            .collect()
+    }
+
+    /// Colours `[len, 3]` of the chunk's rays from `sh` (grid rows; no autodiff).
+    fn render(&self, sh: &Tensor<2>, background: [f32; 3]) -> Tensor<2> {
+        frozen::render_colour(select_rows(sh.clone(), self.rows_t.clone()), &self.samples, background)
+    }
+
+    /// Adds d/d(sh) of `loss_of(rendered chunk, first ray, rays)` into
+    /// `total` (the step's buffer, laid out by `rows`): the autodiff leaf is
+    /// only the rows the chunk touches.
+    fn add_gradient(
+        &self,
+        sh: &Tensor<2>,
+        background: [f32; 3],
+        rows: &StepRows,
+        loss_of: &dyn Fn(Tensor<2>, usize, usize) -> Tensor<1>,
+        total: Tensor<2>,
+    ) -> Tensor<2> {
+        let leaf = select_rows(sh.clone(), self.rows_t.clone()).autodiff().require_grad();
+        let rgb = frozen::render_colour(leaf.clone(), &self.samples, background);
+        let loss = loss_of(rgb, self.start, self.len);
+        // A chunk whose rays all miss the scene renders the background: no graph, no gradient.
+        if loss.is_tracked()
+            && let Some(g) = leaf.grad(&loss.backward())
+        {
+            return assign_rows(total, rows.slots(&self.rows, &sh.device()), g, IndexingUpdateOp::Add);
+        }
+        total
+    }
+}
+
+/// All rays of `chunks` rendered from `sh` without autodiff: `[rays, 3]`
+/// on the device (the first half of deferred back-propagation).
+pub fn render_chunks(sh: &Tensor<2>, chunks: &[DeviceChunk], background: [f32; 3]) -> Tensor<2> {
+    if chunks.is_empty() {
+        return Tensor::zeros([0, 3], &sh.device());
+    }
+    Tensor::cat(chunks.iter().map(|c| c.render(sh, background)).collect(), 0)
+}
+
+/// d/d(sh) of the sum over `chunks` of `loss_of(rendered chunk, first ray,
+/// rays)`, each chunk rendered with autodiff and back-propagated on its own
+/// (the second half of deferred back-propagation): gradients are added into
+/// the step's buffer (`rows`: grid-sized, or one row per touched row, the
+/// samples' rows among them).
+pub fn chunks_gradient(
+    sh: &Tensor<2>,
+    chunks: &[DeviceChunk],
+    background: [f32; 3],
+    rows: &StepRows,
+    loss_of: &dyn Fn(Tensor<2>, usize, usize) -> Tensor<1>,
+) -> Tensor<2> {
+    chunks.iter().fold(rows.zeros(&sh.device()), |total, c| c.add_gradient(sh, background, rows, loss_of, total))
+}
+
+/// [`chunks_gradient`] over `samples` in chunks of `chunk` rays, each
+/// uploaded just before its pass, so memory is bounded by the chunk (a
+/// single pass: the pseudo-ray losses).
 pub fn chunked_gradient(
     sh: &Tensor<2>,
     samples: &FrozenSamples,
@@ -213,24 +305,9 @@ pub fn chunked_gradient(
     loss_of: &dyn Fn(Tensor<2>, usize, usize) -> Tensor<1>,
 ) -> Tensor<2> {
     let device = sh.device();
-    let mut total = rows.zeros(&device);
     let mut subset = RowSubset::default();
-    for (start, len) in chunk_ranges(samples.num_rays, chunk) {
-        let mut part = samples.range(start, len);
-        subset.reset_to(sh.dims()[0], &part.corner_rows);
-        for r in part.corner_rows.iter_mut() {
-            *r = subset.local(*r);
-        }
-        let ft = part.upload(&device);
-        let leaf = select_rows(sh.clone(), indices(subset.rows().to_vec(), &device)).autodiff().require_grad();
-        let rgb = frozen::render_colour(leaf.clone(), &ft, background);
-        let loss = loss_of(rgb, start, len);
-        // A chunk whose rays all miss the scene renders the background: no graph, no gradient.
-        if loss.is_tracked()
-            && let Some(g) = leaf.grad(&loss.backward())
-        {
-            total = assign_rows(total, rows.slots(subset.rows(), &device), g, IndexingUpdateOp::Add);
-        }
-    }
-    total
+    chunk_ranges(samples.num_rays, chunk).fold(rows.zeros(&device), |total, (start, len)| {
+        DeviceChunk::upload(samples, start, len, sh.dims()[0], &mut subset, &device)
+            .add_gradient(sh, background, rows, loss_of, total)
+    })
 }

@@ -26,7 +26,9 @@ use crate::scene::camera::{Camera, NdcParams, Ray, to_ndc};
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::config::{LrSchedule, StylizeConfig, TransferPixels, WhiteOn};
-use crate::stylize::field::{ShTv, StepRows, StyleField, chunked_gradient};
+use crate::stylize::field::{
+    DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, render_chunks,
+};
 use crate::stylize::losses;
 use crate::stylize::styles::{colour_stats, is_background};
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
@@ -625,8 +627,10 @@ impl<'a> Stylizer<'a> {
     ) -> Result<(Tensor<2>, ImageLosses)> {
         let cam = &self.dataset.train[v].camera;
         let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
-        // 1. Full image, no autodiff; it stays on the device.
-        let rgb = frozen::render_rays(&self.field.grid.sh, samples, self.background, self.cfg.render_chunk);
+        // 1. Full image, no autodiff; it stays on the device, and so do the
+        // chunks' sample lists, uploaded once for both passes.
+        let chunks = DeviceChunk::upload_all(samples, self.cfg.render_chunk, &self.field.grid.sh);
+        let rgb = render_chunks(&self.field.grid.sh, &chunks, self.background);
         // 2. Image losses on a leaf image, gradient with respect to the image.
         let image = planar_image(rgb, w, h).autodiff().require_grad();
         let (loss, parts) = self.image_loss(image.clone(), guide, template, style_bank, smooth)?;
@@ -634,14 +638,9 @@ impl<'a> Stylizer<'a> {
         let Some(g) = image.grad(&grads) else { bail!("the image losses do not depend on the image") };
         let g = interleaved(g);
         // 3. Chunked re-render with autodiff, injecting the image gradient.
-        let grad = chunked_gradient(
-            &self.field.grid.sh,
-            samples,
-            self.background,
-            self.cfg.render_chunk,
-            rows,
-            &|rgb, start, len| (rgb * g.clone().narrow(0, start, len)).sum(),
-        );
+        let grad = chunks_gradient(&self.field.grid.sh, &chunks, self.background, rows, &|rgb, start, len| {
+            (rgb * g.clone().narrow(0, start, len)).sum()
+        });
         Ok((grad, parts))
     }
 
