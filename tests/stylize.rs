@@ -12,15 +12,15 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use refnpr::field::checkpoint;
 use refnpr::field::composite::{self as render, BatchTensors};
-use refnpr::field::frozen::{FrozenSamples, render_colour, render_plain};
+use refnpr::field::frozen::{DeviceSamples, FrozenSamples, render_colour, render_plain};
 use refnpr::field::grid::{GridGeometry, RadianceGrid};
 use refnpr::field::march::{self, MarchParams, Marcher};
 use refnpr::field::optim::{RmsStart, Rmsprop};
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
 use refnpr::scene::data::{self, procedural};
-use refnpr::stylize::config::{ColourNorm, StylizeConfig};
+use refnpr::stylize::config::{ColourNorm, Placement, StylizeConfig};
 use refnpr::stylize::field::{
-    DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, render_chunks,
+    DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, render_chunks,
 };
 use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::tcm::Template;
@@ -383,6 +383,50 @@ fn deferred_backprop_equals_direct_backprop() {
             assert!(ours.iter().all(|&x| x == 0.0), "untouched row {r} has a gradient");
         }
     }
+    // Picks gathered from lists kept on the device: the same samples as the
+    // host's cut-out (rays without samples first, repeated and last among
+    // them), so the same colours and the same gradient, dense and sparse.
+    let lists = DeviceSamples::upload(&samples, &d);
+    let misses: Vec<usize> =
+        (0..samples.num_rays).filter(|&r| samples.ray_offsets[r] == samples.ray_offsets[r + 1]).collect();
+    let hits: Vec<usize> =
+        (0..samples.num_rays).filter(|&r| samples.ray_offsets[r] < samples.ray_offsets[r + 1]).collect();
+    assert!(misses.len() > 10 && hits.len() > 500, "{} misses, {} hits", misses.len(), hits.len());
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let mut picks = vec![misses[0], misses[1], hits[7], hits[7], misses[0]];
+    picks.extend((0..3000).map(|_| rng.random_range(0..samples.num_rays)));
+    picks.extend([hits[3], misses[2], misses[2]]);
+    let cut = samples.subset(&picks);
+    // Past 65535 samples in one gather: wgpu's index kernels have dropped indices beyond that (see `INDEX_PIECE`).
+    assert!(cut.num_samples() > 1 << 16, "{} samples", cut.num_samples());
+    assert_eq!(
+        to_vec(render_colour(grid.sh.clone(), &lists.gather(&picks), bg)),
+        to_vec(render_colour(grid.sh.clone(), &cut.upload(&d), bg)),
+    );
+    let mse_of = |target: Tensor<2>| {
+        move |rgb: Tensor<2>, start: usize, len: usize| {
+            let e = rgb - target.clone().narrow(0, start, len);
+            (e.clone() * e).sum()
+        }
+    };
+    let target = floats((0..picks.len() * 3).map(|i| (i % 7) as f32 / 7.0).collect(), [picks.len(), 3], &d);
+    let mut touched_picks = StepRows::sparse(grid.num_rows());
+    touched_picks.add(&cut.corner_rows);
+    for rows in [&rows, &touched_picks] {
+        let host = to_vec(chunked_gradient(&grid.sh, &cut, bg, 97, rows, &mse_of(target.clone())));
+        let chunks = (0..picks.len()).step_by(97).map(|s| {
+            let n = 97.min(picks.len() - s);
+            (s, n, lists.gather(&picks[s..s + n]))
+        });
+        let gathered = to_vec(gathered_gradient(&grid.sh, chunks, bg, rows, &mse_of(target.clone())));
+        assert!(host.iter().any(|&x| x != 0.0));
+        if common::backend() == refnpr::BackendKind::Wgpu {
+            let worst = host.iter().zip(&gathered).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+            assert!(worst < 1e-5, "gathered vs host gradient: {worst}");
+        } else {
+            assert_eq!(gathered, host);
+        }
+    }
     // Direct: one graph from the grid to the loss.
     let leaf = grid.sh.clone().autodiff().require_grad();
     let rgb = render_colour(leaf.clone(), &samples.upload(&d), bg);
@@ -571,6 +615,35 @@ fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
         checkpoint::load_with(&t.path().join("file"), &d, false).unwrap(),
     );
     assert_eq!(to_vec(a.grid.sh.clone()), to_vec(b.grid.sh.clone()), "the stylized colours differ");
+
+    // The pseudo-rays kept where this backend does not keep them by default
+    // (CPU: on the "device", gathered there; wgpu: on the host, cut out and
+    // uploaded): the same field, bit for bit on the CPU backends.
+    let on_wgpu = common::backend() == refnpr::BackendKind::Wgpu;
+    let mut moved = config.clone();
+    moved.pseudo_rays_on_device = if on_wgpu { Placement::Host } else { Placement::Device };
+    let placed = run_stylize(
+        &StylizeJob { render_test: false, ..job(&photo, &case, &t.path().join("placed"), moved, Method::RefNpr) },
+        &refnpr::Quiet,
+    )
+    .unwrap();
+    let c = checkpoint::load_with(&t.path().join("placed"), &d, false).unwrap();
+    let (sh_a, sh_c) = (to_vec(a.grid.sh.clone()), to_vec(c.grid.sh.clone()));
+    if on_wgpu {
+        let worst = sh_a.iter().zip(&sh_c).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+        assert!(worst < 1e-3, "pseudo-rays on the host vs the device: {worst}");
+    } else {
+        assert_eq!(sh_a, sh_c, "pseudo-rays gathered on the device changed the field");
+    }
+    // Kept on the device, a step's picks cross as indices, not sample lists.
+    let (host_side, device_side) = if on_wgpu { (&placed, &again) } else { (&again, &placed) };
+    let per_step = |r: &refnpr::stylize::StylizeReport| r.transfers["image_epochs"].per_step.upload_bytes;
+    eprintln!(
+        "image step uploads: pseudo-rays on the host {} B, on the device {} B",
+        per_step(host_side),
+        per_step(device_side)
+    );
+    assert!(per_step(device_side) * 2 < per_step(host_side));
 
     // The same file with a case painted from another view.
     let other = t.path().join("other");

@@ -70,6 +70,17 @@ impl StepRows {
         indices(grid_rows.iter().map(|&r| self.slot(r)).collect(), device)
     }
 
+    /// The step's buffer taken from a grid-sized gradient (dense: itself).
+    pub fn take_from(&self, grid_sized: Tensor<2>) -> Tensor<2> {
+        match &self.touched {
+            None => grid_sized,
+            Some(s) => {
+                let device = grid_sized.device();
+                select_rows(grid_sized, indices(s.rows().to_vec(), &device))
+            }
+        }
+    }
+
     /// An empty gradient buffer.
     pub fn zeros(&self, device: &burn::tensor::Device) -> Tensor<2> {
         Tensor::zeros([self.len(), 3], device)
@@ -310,4 +321,30 @@ pub fn chunked_gradient(
         DeviceChunk::upload(samples, start, len, sh.dims()[0], &mut subset, &device)
             .add_gradient(sh, background, rows, loss_of, total)
     })
+}
+
+/// [`chunks_gradient`] for chunks whose corner rows are the grid's own
+/// (`(first ray, rays, samples)`, gathered on the device by
+/// `DeviceSamples::gather`): each chunk's autodiff leaf is the whole SH
+/// grid, so no renumbering has to come from the host, and the gradients
+/// are summed grid-sized on the device until the step's rows are taken.
+/// The sums are those of `chunked_gradient`, in the same order.
+pub fn gathered_gradient(
+    sh: &Tensor<2>,
+    chunks: impl Iterator<Item = (usize, usize, frozen::FrozenTensors)>,
+    background: [f32; 3],
+    rows: &StepRows,
+    loss_of: &dyn Fn(Tensor<2>, usize, usize) -> Tensor<1>,
+) -> Tensor<2> {
+    let mut total = Tensor::zeros(sh.dims(), &sh.device());
+    for (start, len, samples) in chunks {
+        let leaf = sh.clone().autodiff().require_grad();
+        let loss = loss_of(frozen::render_colour(leaf.clone(), &samples, background), start, len);
+        if loss.is_tracked()
+            && let Some(g) = leaf.grad(&loss.backward())
+        {
+            total = total + g;
+        }
+    }
+    rows.take_from(total)
 }

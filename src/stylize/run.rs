@@ -260,7 +260,7 @@ fn save_outputs(st: &Stylizer, photo_meta: &checkpoint::CheckpointMeta, started:
     let (rows, device) = (grid.num_rows(), grid.device());
     let zeros = (Tensor::zeros([rows, 1], &device), Tensor::zeros([rows, 3], &device));
     checkpoint::save(&out.join(checkpoint::CHECKPOINT_FILE), &meta, grid, &zeros.0, &zeros.1)?;
-    for r in 0..st.reference_samples.len() {
+    for r in 0..st.num_references() {
         st.render_reference(r).save_png(&out.join(format!("reference_{r}.png")))?;
     }
     Ok(())

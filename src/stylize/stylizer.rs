@@ -17,7 +17,7 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::eval::metrics::psnr_from_mse;
 use crate::field::checkpoint::CheckpointMeta;
-use crate::field::frozen::{self, FrozenSamples};
+use crate::field::frozen::{self, DeviceSamples, FrozenSamples};
 use crate::field::grid::RadianceGrid;
 use crate::field::march::{BlockOccupancy, MarchParams, Marcher};
 use crate::field::optim::{Rmsprop, log_lerp};
@@ -25,18 +25,19 @@ use crate::reference::registration::RegistrationFile;
 use crate::scene::camera::{Camera, NdcParams, Ray, to_ndc};
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
-use crate::stylize::config::{LrSchedule, StylizeConfig, TransferPixels, WhiteOn};
+use crate::stylize::config::{LrSchedule, Placement, StylizeConfig, TransferPixels, WhiteOn};
 use crate::stylize::field::{
-    DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, render_chunks,
+    DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, render_chunks,
 };
 use crate::stylize::losses;
 use crate::stylize::styles::{colour_stats, is_background};
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
 use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
+use crate::util::chunk_ranges;
 use crate::util::image::Image;
 use crate::util::progress::{Event, Phase, Progress};
 use crate::util::rng::{Stream, epoch_rng, step_rng};
-use crate::util::tensor::{floats, scalar, to_vec};
+use crate::util::tensor::{floats, is_host_memory, scalar, to_vec};
 use crate::util::transfer::{self, PhaseTransfers, Transfers};
 use crate::vgg::{Vgg16, VggLayer};
 
@@ -49,6 +50,40 @@ fn interleaved(grad: Tensor<4>) -> Tensor<2> {
 /// Rendered colours `[h * w, 3]` (row-major pixels) as a `[1, 3, h, w]` image: the inverse of `interleaved`.
 fn planar_image(rgb: Tensor<2>, w: usize, h: usize) -> Tensor<4> {
     rgb.transpose().reshape([1, 3, h, w])
+}
+
+/// One group of L_ref's pseudo-rays: rays of `lists` (repeats allowed)
+/// and their target colours; `on_device`, a device copy of `lists` to
+/// gather them from.
+struct PseudoRays<'s> {
+    lists: Cow<'s, FrozenSamples>,
+    on_device: Option<&'s DeviceSamples>,
+    rays: Vec<usize>,
+    target: Vec<f32>,
+}
+
+impl PseudoRays<'_> {
+    /// The corner rows of each ray's samples (the step's rows).
+    fn corner_rows(&self) -> impl Iterator<Item = &[i32]> {
+        let offsets = &self.lists.ray_offsets;
+        self.rays.iter().map(move |&r| &self.lists.corner_rows[offsets[r] as usize * 8..offsets[r + 1] as usize * 8])
+    }
+}
+
+/// The rays of a squared-error loss: sample lists on the host (uploaded
+/// chunk by chunk), or picks into lists kept on the device.
+enum RaySet<'s> {
+    Host(&'s FrozenSamples),
+    Gathered(&'s DeviceSamples, &'s [usize]),
+}
+
+impl RaySet<'_> {
+    fn len(&self) -> usize {
+        match self {
+            RaySet::Host(s) => s.num_rays,
+            RaySet::Gathered(_, picks) => picks.len(),
+        }
+    }
 }
 
 /// Per-view data kept for the image epochs.
@@ -136,8 +171,10 @@ pub struct Stylizer<'a> {
     device: Device,
     /// Cached sample lists of the training views (None = re-marched when needed).
     view_samples: Vec<Option<FrozenSamples>>,
-    /// Sample lists of the reference views.
-    pub reference_samples: Vec<FrozenSamples>,
+    /// Sample lists of the reference views, one after another; reference
+    /// `r`'s rays start at `reference_first_ray[r]`.
+    reference_lists: FrozenSamples,
+    reference_first_ray: Vec<usize>,
     /// (reference, pixel) of every reference pixel L_ref uses: those that
     /// see the scene, or all of them (`loss.reference_misses`).
     reference_pixels: Vec<(usize, usize)>,
@@ -146,6 +183,10 @@ pub struct Stylizer<'a> {
     pub registered: Vec<(u32, u32, [f32; 3])>,
     /// Sample lists of the registered pixels, in that order (None = re-marched when picked).
     registered_samples: Option<FrozenSamples>,
+    /// Device copies of `reference_lists` and `registered_samples`, when
+    /// the pseudo-rays are gathered there (`pseudo_rays_on_device`).
+    reference_on_device: Option<DeviceSamples>,
+    registered_on_device: Option<DeviceSamples>,
     /// ARF: the photos are recoloured with this before the refit.
     pub colour_transfer: Option<ColourTransfer>,
     pub curve: Vec<CurvePoint>,
@@ -194,16 +235,23 @@ impl<'a> Stylizer<'a> {
             ad,
             device: job.backend.device(),
             view_samples: vec![None; dataset.train.len()],
-            reference_samples: Vec::new(),
+            reference_lists: FrozenSamples::default(),
+            reference_first_ray: vec![0],
             reference_pixels,
             registered: registration.registered_pixels(),
             registration,
             registered_samples: None,
+            reference_on_device: None,
+            registered_on_device: None,
             colour_transfer,
             curve: Vec::new(),
             optimiser_steps: 0,
         };
-        st.reference_samples = st.registration.references.iter().map(|p| st.march_camera(&p.camera)).collect();
+        for r in 0..st.registration.references.len() {
+            let samples = st.march_camera(&st.registration.references[r].camera);
+            st.reference_lists.append(&samples);
+            st.reference_first_ray.push(st.reference_lists.num_rays);
+        }
         st
     }
 
@@ -325,7 +373,7 @@ impl<'a> Stylizer<'a> {
         let pseudo = if self.job.method == Method::RefNpr { self.pseudo_ray_batch(&mut rng) } else { Vec::new() };
         let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
         let corners: Vec<&[i32]> =
-            std::iter::once(&*samples).chain(pseudo.iter().map(|(p, _)| p)).map(|p| &p.corner_rows[..]).collect();
+            std::iter::once(&samples.corner_rows[..]).chain(pseudo.iter().flat_map(PseudoRays::corner_rows)).collect();
         let rows = self.field.step_rows(self.cfg.optim.sparse, &corners, &tv);
         let (grad, parts) = self.image_gradient(
             v,
@@ -451,13 +499,19 @@ impl<'a> Stylizer<'a> {
         self.march
     }
 
+    pub fn num_references(&self) -> usize {
+        self.reference_first_ray.len() - 1
+    }
+
+    /// The sample lists of reference `r`.
+    fn reference_samples(&self, r: usize) -> FrozenSamples {
+        let first = self.reference_first_ray[r];
+        self.reference_lists.range(first, self.reference_first_ray[r + 1] - first)
+    }
+
     pub fn render_reference(&self, r: usize) -> Image {
-        let rgb = frozen::render_plain(
-            &self.field.grid.sh,
-            &self.reference_samples[r],
-            self.background,
-            self.cfg.render_chunk,
-        );
+        let samples = self.reference_samples(r);
+        let rgb = frozen::render_plain(&self.field.grid.sh, &samples, self.background, self.cfg.render_chunk);
         Image::of_camera(&self.registration.references[r].camera, rgb)
     }
 
@@ -497,7 +551,7 @@ impl<'a> Stylizer<'a> {
         let samples = self.march_rays(&batch_rays);
         let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
         let rows = self.field.step_rows(self.cfg.optim.sparse, &[&samples.corner_rows], &tv);
-        let (grad, mse) = self.mse_gradient(&samples, &rows, target, 1.0);
+        let (grad, mse) = self.mse_gradient(RaySet::Host(&samples), &rows, target, 1.0);
         let grad = self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows);
         let lr = self.learning_rate(s.lr_refit);
         self.optimiser_step(grad, rows, lr);
@@ -506,29 +560,24 @@ impl<'a> Stylizer<'a> {
 
     /// `weight` x the mean squared error of the rays' colours to `target`
     /// (`[rays, 3]`): its SH gradient and its value.
-    fn mse_gradient(
-        &self,
-        samples: &FrozenSamples,
-        rows: &StepRows,
-        target: Tensor<2>,
-        weight: f32,
-    ) -> (Tensor<2>, f32) {
-        let scale = weight / (3.0 * samples.num_rays.max(1) as f32);
+    fn mse_gradient(&self, rays: RaySet, rows: &StepRows, target: Tensor<2>, weight: f32) -> (Tensor<2>, f32) {
+        let scale = weight / (3.0 * rays.len().max(1) as f32);
         // Summed on the device and read once (a read per chunk would wait for the queue each time).
         let value: std::cell::RefCell<Option<Tensor<1>>> = std::cell::RefCell::new(None);
-        let grad = chunked_gradient(
-            &self.field.grid.sh,
-            samples,
-            self.background,
-            self.cfg.render_chunk,
-            rows,
-            &|rgb, start, len| {
-                let d = rgb - target.clone().narrow(0, start, len);
-                let loss = (d.clone() * d).sum() * scale;
-                LossParts::add(&mut value.borrow_mut(), &loss);
-                loss
-            },
-        );
+        let loss_of = |rgb: Tensor<2>, start: usize, len: usize| {
+            let d = rgb - target.clone().narrow(0, start, len);
+            let loss = (d.clone() * d).sum() * scale;
+            LossParts::add(&mut value.borrow_mut(), &loss);
+            loss
+        };
+        let (sh, chunk) = (&self.field.grid.sh, self.cfg.render_chunk);
+        let grad = match rays {
+            RaySet::Host(samples) => chunked_gradient(sh, samples, self.background, chunk, rows, &loss_of),
+            RaySet::Gathered(lists, picks) => {
+                let chunks = chunk_ranges(picks.len(), chunk).map(|(s, n)| (s, n, lists.gather(&picks[s..s + n])));
+                gathered_gradient(sh, chunks, self.background, rows, &loss_of)
+            }
+        };
         (grad, value.into_inner().map_or(0.0, scalar))
     }
 
@@ -549,20 +598,29 @@ impl<'a> Stylizer<'a> {
             used += samples.as_ref().map_or(0, FrozenSamples::bytes);
             self.view_samples[v] = samples;
         }
+        let on_device = match self.cfg.pseudo_rays_on_device {
+            Placement::Auto => !is_host_memory(&self.device),
+            Placement::Device => true,
+            Placement::Host => false,
+        };
+        if on_device && self.job.method == Method::RefNpr {
+            self.reference_on_device = Some(DeviceSamples::upload(&self.reference_lists, &self.device));
+            self.registered_on_device =
+                self.registered_samples.as_ref().map(|s| DeviceSamples::upload(s, &self.device));
+        }
     }
 
     /// A step's pseudo-rays for L_ref: a batch of reference pixels and a
     /// batch of registered pixels, each with its target colours (none when
     /// L_ref is off).
-    fn pseudo_ray_batch(&self, rng: &mut ChaCha8Rng) -> Vec<(FrozenSamples, Vec<f32>)> {
+    fn pseudo_ray_batch(&self, rng: &mut ChaCha8Rng) -> Vec<PseudoRays<'_>> {
         let l = &self.cfg.loss;
         if !self.cfg.ablation.use_reference_loss || l.reference <= 0.0 {
             return Vec::new();
         }
-        let mut groups: Vec<(FrozenSamples, Vec<f32>)> = Vec::new();
-        // Reference pixels (those that see the scene, or all: `reference_misses`).
-        let mut samples = FrozenSamples::default();
-        let mut target = Vec::new();
+        let mut groups = Vec::new();
+        // Reference pixels (those that see the scene, or all: `reference_misses`),
+        // ordered by reference.
         let pixels = &self.reference_pixels;
         if !pixels.is_empty() {
             let picks: Vec<(usize, usize)> = if l.reference_rays >= pixels.len() {
@@ -570,39 +628,62 @@ impl<'a> Stylizer<'a> {
             } else {
                 (0..l.reference_rays).map(|_| pixels[rng.random_range(0..pixels.len())]).collect()
             };
-            for r in 0..self.reference_samples.len() {
-                let ids: Vec<usize> = picks.iter().filter(|p| p.0 == r).map(|p| p.1).collect();
-                samples.append(&self.reference_samples[r].subset(&ids));
-                target.extend(ids.iter().flat_map(|&i| self.registration.references[r].colours[i]));
+            let mut rays = Vec::with_capacity(picks.len());
+            let mut target = Vec::with_capacity(picks.len() * 3);
+            for r in 0..self.num_references() {
+                for &(_, i) in picks.iter().filter(|p| p.0 == r) {
+                    rays.push(self.reference_first_ray[r] + i);
+                    target.extend(self.registration.references[r].colours[i]);
+                }
             }
-            groups.push((samples, target));
+            groups.push(PseudoRays {
+                lists: Cow::Borrowed(&self.reference_lists),
+                on_device: self.reference_on_device.as_ref(),
+                rays,
+                target,
+            });
         }
         if !self.cfg.ablation.reference_rays_only && !self.registered.is_empty() && l.registered_rays > 0 {
             let picks: Vec<usize> =
                 (0..l.registered_rays).map(|_| rng.random_range(0..self.registered.len())).collect();
-            let samples = match &self.registered_samples {
-                Some(cached) => cached.subset(&picks),
+            let target = picks.iter().flat_map(|&i| self.registered[i].2).collect();
+            groups.push(match &self.registered_samples {
+                Some(cached) => PseudoRays {
+                    lists: Cow::Borrowed(cached),
+                    on_device: self.registered_on_device.as_ref(),
+                    rays: picks,
+                    target,
+                },
                 None => {
                     let rays: Vec<Ray> = picks
                         .iter()
                         .map(|&i| self.pixel_ray(self.registered[i].0 as usize, self.registered[i].1 as usize))
                         .collect();
-                    self.march_rays(&rays)
+                    let marched = self.march_rays(&rays);
+                    let rays = (0..marched.num_rays).collect();
+                    PseudoRays { lists: Cow::Owned(marched), on_device: None, rays, target }
                 }
-            };
-            groups.push((samples, picks.iter().flat_map(|&i| self.registered[i].2).collect()));
+            });
         }
         groups
     }
 
     /// The pseudo-ray loss's gradient on the step's rows (λ_r times the mean
     /// squared error of each group of `pseudo_ray_batch`) and its value.
-    fn reference_gradient(&self, groups: Vec<(FrozenSamples, Vec<f32>)>, rows: &StepRows) -> (Option<Tensor<2>>, f32) {
+    fn reference_gradient(&self, groups: Vec<PseudoRays>, rows: &StepRows) -> (Option<Tensor<2>>, f32) {
         let mut total: Option<Tensor<2>> = None;
         let mut value = 0.0;
-        for (samples, target) in groups {
-            let target = floats(target, [samples.num_rays, 3], &self.device);
-            let (g, v) = self.mse_gradient(&samples, rows, target, self.cfg.loss.reference);
+        for group in groups {
+            let target = floats(group.target, [group.rays.len(), 3], &self.device);
+            let (g, v) = match group.on_device {
+                Some(lists) => {
+                    self.mse_gradient(RaySet::Gathered(lists, &group.rays), rows, target, self.cfg.loss.reference)
+                }
+                None => {
+                    let samples = group.lists.subset(&group.rays);
+                    self.mse_gradient(RaySet::Host(&samples), rows, target, self.cfg.loss.reference)
+                }
+            };
             value += v;
             total = Some(match total {
                 None => g,

@@ -41,7 +41,14 @@ pub const INDEX_PIECE: usize = 1 << 15;
 /// device identity) take any length in one call, which on a large grid
 /// saves one full-size gradient buffer per piece.
 fn needs_pieces(device: &Device) -> bool {
-    device.identity().is_some()
+    !is_host_memory(device)
+}
+
+/// Whether the device's tensors live in host memory (the CPU backends,
+/// which report no device identity): a copy "on the device" is then a
+/// second copy in RAM.
+pub fn is_host_memory(device: &Device) -> bool {
+    device.identity().is_none()
 }
 
 /// `x.select(0, idx)` whose backward stays exact on wgpu: long index lists
