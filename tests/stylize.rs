@@ -394,15 +394,19 @@ fn deferred_backprop_equals_direct_backprop() {
     assert!(misses.len() > 10 && hits.len() > 500, "{} misses, {} hits", misses.len(), hits.len());
     let mut rng = ChaCha8Rng::seed_from_u64(4);
     let mut picks = vec![misses[0], misses[1], hits[7], hits[7], misses[0]];
-    picks.extend((0..3000).map(|_| rng.random_range(0..samples.num_rays)));
+    picks.extend((0..12_000).map(|_| rng.random_range(0..samples.num_rays)));
     picks.extend([hits[3], misses[2], misses[2]]);
     let cut = samples.subset(&picks);
     // Past 65535 samples in one gather: wgpu's index kernels have dropped indices beyond that (see `INDEX_PIECE`).
     assert!(cut.num_samples() > 1 << 16, "{} samples", cut.num_samples());
-    assert_eq!(
+    let (gathered, uploaded) = (
         to_vec(render_colour(grid.sh.clone(), &lists.gather(&picks), bg)),
         to_vec(render_colour(grid.sh.clone(), &cut.upload(&d), bg)),
     );
+    // wgpu sums a ray's samples with atomics, in no fixed order.
+    let on_wgpu = common::backend() == refnpr::BackendKind::Wgpu;
+    let worst = gathered.iter().zip(&uploaded).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(if on_wgpu { worst < 1e-5 } else { gathered == uploaded }, "gathered vs uploaded colours: {worst}");
     let mse_of = |target: Tensor<2>| {
         move |rgb: Tensor<2>, start: usize, len: usize| {
             let e = rgb - target.clone().narrow(0, start, len);
@@ -413,14 +417,14 @@ fn deferred_backprop_equals_direct_backprop() {
     let mut touched_picks = StepRows::sparse(grid.num_rows());
     touched_picks.add(&cut.corner_rows);
     for rows in [&rows, &touched_picks] {
-        let host = to_vec(chunked_gradient(&grid.sh, &cut, bg, 97, rows, &mse_of(target.clone())));
-        let chunks = (0..picks.len()).step_by(97).map(|s| {
-            let n = 97.min(picks.len() - s);
+        let host = to_vec(chunked_gradient(&grid.sh, &cut, bg, 977, rows, &mse_of(target.clone())));
+        let chunks = (0..picks.len()).step_by(977).map(|s| {
+            let n = 977.min(picks.len() - s);
             (s, n, lists.gather(&picks[s..s + n]))
         });
         let gathered = to_vec(gathered_gradient(&grid.sh, chunks, bg, rows, &mse_of(target.clone())));
         assert!(host.iter().any(|&x| x != 0.0));
-        if common::backend() == refnpr::BackendKind::Wgpu {
+        if on_wgpu {
             let worst = host.iter().zip(&gathered).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
             assert!(worst < 1e-5, "gathered vs host gradient: {worst}");
         } else {
@@ -616,12 +620,13 @@ fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
     );
     assert_eq!(to_vec(a.grid.sh.clone()), to_vec(b.grid.sh.clone()), "the stylized colours differ");
 
-    // The pseudo-rays kept where this backend does not keep them by default
-    // (CPU: on the "device", gathered there; wgpu: on the host, cut out and
-    // uploaded): the same field, bit for bit on the CPU backends.
+    // The sample lists (pseudo-rays and views) kept where this backend does
+    // not keep them by default (CPU: on the "device", gathered there; wgpu:
+    // on the host, cut out and uploaded): the same field, bit for bit on the
+    // CPU backends.
     let on_wgpu = common::backend() == refnpr::BackendKind::Wgpu;
     let mut moved = config.clone();
-    moved.pseudo_rays_on_device = if on_wgpu { Placement::Host } else { Placement::Device };
+    moved.samples_on_device = if on_wgpu { Placement::Host } else { Placement::Device };
     let placed = run_stylize(
         &StylizeJob { render_test: false, ..job(&photo, &case, &t.path().join("placed"), moved, Method::RefNpr) },
         &refnpr::Quiet,
@@ -631,19 +636,19 @@ fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
     let (sh_a, sh_c) = (to_vec(a.grid.sh.clone()), to_vec(c.grid.sh.clone()));
     if on_wgpu {
         let worst = sh_a.iter().zip(&sh_c).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
-        assert!(worst < 1e-3, "pseudo-rays on the host vs the device: {worst}");
+        assert!(worst < 1e-3, "sample lists on the host vs the device: {worst}");
     } else {
-        assert_eq!(sh_a, sh_c, "pseudo-rays gathered on the device changed the field");
+        assert_eq!(sh_a, sh_c, "sample lists gathered on the device changed the field");
     }
-    // Kept on the device, a step's picks cross as indices, not sample lists.
+    // Kept on the device, a step's rays cross as indices, not sample lists.
     let (host_side, device_side) = if on_wgpu { (&placed, &again) } else { (&again, &placed) };
     let per_step = |r: &refnpr::stylize::StylizeReport| r.transfers["image_epochs"].per_step.upload_bytes;
     eprintln!(
-        "image step uploads: pseudo-rays on the host {} B, on the device {} B",
+        "image step uploads: sample lists on the host {} B, on the device {} B",
         per_step(host_side),
         per_step(device_side)
     );
-    assert!(per_step(device_side) * 2 < per_step(host_side));
+    assert!(per_step(device_side) * 5 < per_step(host_side));
 
     // The same file with a case painted from another view.
     let other = t.path().join("other");

@@ -16,7 +16,7 @@ use crate::field::march::{MarchParams, Marcher, SampleBatch};
 use crate::scene::camera::Ray;
 use crate::scene::sh;
 use crate::util::chunk_ranges;
-use crate::util::tensor::{assign_rows, floats, indices, to_vec};
+use crate::util::tensor::{assign_rows, cumsum_rows, floats, indices, select_int_rows, select_rows, to_vec};
 
 /// Rays marched at once: bounds the unfiltered sample buffers of one march
 /// (every sample of the chunk before the weight cut) to a few hundred MB.
@@ -231,7 +231,7 @@ impl DeviceSamples {
         }
         let marks: Vec<i32> = starts.iter().skip(1).copied().filter(|&s| (s as usize) < total).collect();
         let ray_ids = indices(rays.iter().map(|&r| r as i32).collect(), &device);
-        let final_transmittance = self.final_transmittance.clone().select(0, ray_ids.clone());
+        let final_transmittance = select_rows(self.final_transmittance.clone(), ray_ids.clone());
         if total == 0 {
             return FrozenTensors {
                 num_rays: rays.len(),
@@ -250,17 +250,17 @@ impl DeviceSamples {
             let ones: Tensor<2> = Tensor::ones([marks.len(), 1], &device);
             let marked =
                 assign_rows(Tensor::zeros([total, 1], &device), indices(marks, &device), ones, IndexingUpdateOp::Add);
-            marked.cumsum(0).reshape([total]).int()
+            cumsum_rows(marked).reshape([total]).int()
         };
-        let first = self.first_sample.clone().select(0, ray_ids).select(0, ray_of_sample.clone());
-        let start = indices(starts, &device).select(0, ray_of_sample.clone());
+        let first = select_int_rows(select_int_rows(self.first_sample.clone(), ray_ids), ray_of_sample.clone());
+        let start = select_int_rows(indices(starts, &device), ray_of_sample.clone());
         let sample_ids = first + Tensor::arange(0..total as i64, &device) - start;
         FrozenTensors {
             num_rays: rays.len(),
             num_samples: total,
-            corner_rows: self.corner_rows.clone().select(0, sample_ids.clone()).reshape([total * 8]),
-            colour_weights: self.colour_weights.clone().select(0, sample_ids.clone()).reshape([total * 8, 1]),
-            weight: self.weight.clone().select(0, sample_ids),
+            corner_rows: select_int_rows(self.corner_rows.clone(), sample_ids.clone()).reshape([total * 8]),
+            colour_weights: select_rows(self.colour_weights.clone(), sample_ids.clone()).reshape([total * 8, 1]),
+            weight: select_rows(self.weight.clone(), sample_ids),
             ray_of_sample,
             final_transmittance,
         }

@@ -23,15 +23,16 @@ pub enum LrSchedule {
     Shared,
 }
 
-/// Where L_ref's pseudo-ray sample lists are kept for the image epochs.
+/// Where the cached sample lists (L_ref's pseudo-rays, the training views)
+/// are kept for the image epochs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Placement {
-    /// On the device when its memory is not the host's (wgpu), else on the host.
+    /// Also on the device when its memory is not the host's (wgpu); else on the host only.
     Auto,
-    /// Uploaded once; each step's picks are gathered on the device.
+    /// Also on the device, uploaded once; each step's rays are gathered there.
     Device,
-    /// On the host; each step's picks are cut out and uploaded.
+    /// On the host only; each step's rays are cut out and uploaded.
     Host,
 }
 
@@ -281,9 +282,10 @@ pub struct StylizeConfig {
     pub min_sample_weight: f32,
     /// Memory for cached per-view sample lists (MB); views beyond it are re-marched each step.
     pub sample_cache_mb: usize,
-    /// Where the pseudo-rays' sample lists are kept (the device copy is in
-    /// addition to the host's, which gives each step its rows).
-    pub pseudo_rays_on_device: Placement,
+    /// Where the cached sample lists are kept (a device copy is in addition
+    /// to the host's, which gives each step its rows, so it takes up to
+    /// `sample_cache_mb` of device memory).
+    pub samples_on_device: Placement,
     /// Rays per chunk in rendering and the deferred re-render.
     pub render_chunk: usize,
     /// Query rows per chunk in the nearest-neighbour searches.
@@ -303,7 +305,7 @@ impl Default for StylizeConfig {
             colour_corners: ColourCorners::Renormalised,
             min_sample_weight: 1e-5,
             sample_cache_mb: 2048,
-            pseudo_rays_on_device: Placement::Auto,
+            samples_on_device: Placement::Auto,
             render_chunk: 16384,
             search_chunk: 1024,
         }

@@ -289,6 +289,19 @@ pub fn render_chunks(sh: &Tensor<2>, chunks: &[DeviceChunk], background: [f32; 3
     Tensor::cat(chunks.iter().map(|c| c.render(sh, background)).collect(), 0)
 }
 
+/// All rays of `chunks` (`(first ray, rays, samples)` with the grid's own
+/// corner rows, gathered on the device) rendered from `sh` without autodiff.
+pub fn render_gathered(
+    sh: &Tensor<2>,
+    chunks: &[(usize, usize, frozen::FrozenTensors)],
+    background: [f32; 3],
+) -> Tensor<2> {
+    if chunks.is_empty() {
+        return Tensor::zeros([0, 3], &sh.device());
+    }
+    Tensor::cat(chunks.iter().map(|(_, _, c)| frozen::render_colour(sh.clone(), c, background)).collect(), 0)
+}
+
 /// d/d(sh) of the sum over `chunks` of `loss_of(rendered chunk, first ray,
 /// rays)`, each chunk rendered with autodiff and back-propagated on its own
 /// (the second half of deferred back-propagation): gradients are added into
@@ -331,7 +344,7 @@ pub fn chunked_gradient(
 /// The sums are those of `chunked_gradient`, in the same order.
 pub fn gathered_gradient(
     sh: &Tensor<2>,
-    chunks: impl Iterator<Item = (usize, usize, frozen::FrozenTensors)>,
+    chunks: impl IntoIterator<Item = (usize, usize, frozen::FrozenTensors)>,
     background: [f32; 3],
     rows: &StepRows,
     loss_of: &dyn Fn(Tensor<2>, usize, usize) -> Tensor<1>,

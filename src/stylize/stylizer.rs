@@ -28,6 +28,7 @@ use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::config::{LrSchedule, Placement, StylizeConfig, TransferPixels, WhiteOn};
 use crate::stylize::field::{
     DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, render_chunks,
+    render_gathered,
 };
 use crate::stylize::losses;
 use crate::stylize::styles::{colour_stats, is_background};
@@ -171,6 +172,8 @@ pub struct Stylizer<'a> {
     device: Device,
     /// Cached sample lists of the training views (None = re-marched when needed).
     view_samples: Vec<Option<FrozenSamples>>,
+    /// Device copies of the cached views' lists (`samples_on_device`).
+    views_on_device: Vec<Option<DeviceSamples>>,
     /// Sample lists of the reference views, one after another; reference
     /// `r`'s rays start at `reference_first_ray[r]`.
     reference_lists: FrozenSamples,
@@ -235,6 +238,7 @@ impl<'a> Stylizer<'a> {
             ad,
             device: job.backend.device(),
             view_samples: vec![None; dataset.train.len()],
+            views_on_device: vec![None; dataset.train.len()],
             reference_lists: FrozenSamples::default(),
             reference_first_ray: vec![0],
             reference_pixels,
@@ -598,15 +602,18 @@ impl<'a> Stylizer<'a> {
             used += samples.as_ref().map_or(0, FrozenSamples::bytes);
             self.view_samples[v] = samples;
         }
-        let on_device = match self.cfg.pseudo_rays_on_device {
+        let on_device = match self.cfg.samples_on_device {
             Placement::Auto => !is_host_memory(&self.device),
             Placement::Device => true,
             Placement::Host => false,
         };
-        if on_device && self.job.method == Method::RefNpr {
-            self.reference_on_device = Some(DeviceSamples::upload(&self.reference_lists, &self.device));
-            self.registered_on_device =
-                self.registered_samples.as_ref().map(|s| DeviceSamples::upload(s, &self.device));
+        if on_device {
+            let upload = |s: &FrozenSamples| DeviceSamples::upload(s, &self.device);
+            self.views_on_device = self.view_samples.iter().map(|s| s.as_ref().map(upload)).collect();
+            if self.job.method == Method::RefNpr {
+                self.reference_on_device = Some(upload(&self.reference_lists));
+                self.registered_on_device = self.registered_samples.as_ref().map(upload);
+            }
         }
     }
 
@@ -709,9 +716,22 @@ impl<'a> Stylizer<'a> {
         let cam = &self.dataset.train[v].camera;
         let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
         // 1. Full image, no autodiff; it stays on the device, and so do the
-        // chunks' sample lists, uploaded once for both passes.
-        let chunks = DeviceChunk::upload_all(samples, self.cfg.render_chunk, &self.field.grid.sh);
-        let rgb = render_chunks(&self.field.grid.sh, &chunks, self.background);
+        // chunks' sample lists, gathered there (the view's lists are kept on
+        // the device) or uploaded, once for both passes.
+        let sh = &self.field.grid.sh;
+        let gathered: Option<Vec<_>> = self.views_on_device[v].as_ref().map(|lists| {
+            chunk_ranges(samples.num_rays, self.cfg.render_chunk)
+                .map(|(s, n)| (s, n, lists.gather(&(s..s + n).collect::<Vec<_>>())))
+                .collect()
+        });
+        let uploaded = match gathered {
+            Some(_) => Vec::new(),
+            None => DeviceChunk::upload_all(samples, self.cfg.render_chunk, sh),
+        };
+        let rgb = match &gathered {
+            Some(chunks) => render_gathered(sh, chunks, self.background),
+            None => render_chunks(sh, &uploaded, self.background),
+        };
         // 2. Image losses on a leaf image, gradient with respect to the image.
         let image = planar_image(rgb, w, h).autodiff().require_grad();
         let (loss, parts) = self.image_loss(image.clone(), guide, template, style_bank, smooth)?;
@@ -719,9 +739,11 @@ impl<'a> Stylizer<'a> {
         let Some(g) = image.grad(&grads) else { bail!("the image losses do not depend on the image") };
         let g = interleaved(g);
         // 3. Chunked re-render with autodiff, injecting the image gradient.
-        let grad = chunks_gradient(&self.field.grid.sh, &chunks, self.background, rows, &|rgb, start, len| {
-            (rgb * g.clone().narrow(0, start, len)).sum()
-        });
+        let inject = |rgb: Tensor<2>, start: usize, len: usize| (rgb * g.clone().narrow(0, start, len)).sum();
+        let grad = match gathered {
+            Some(chunks) => gathered_gradient(sh, chunks, self.background, rows, &inject),
+            None => chunks_gradient(sh, &uploaded, self.background, rows, &inject),
+        };
         Ok((grad, parts))
     }
 

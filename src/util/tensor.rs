@@ -66,6 +66,43 @@ pub fn select_rows<const D: usize>(x: Tensor<D>, idx: Tensor<1, Int>) -> Tensor<
     Tensor::cat(pieces, 0)
 }
 
+/// [`select_rows`] for index tensors: long index lists are cut into the
+/// same pieces on GPUs (burn-cubecl 0.22.1 has two kernels known to stop
+/// at 65535 elements: `select_assign` and `cumsum`; not shown for `select`,
+/// kept within the bound all the same).
+pub fn select_int_rows<const D: usize>(x: Tensor<D, Int>, idx: Tensor<1, Int>) -> Tensor<D, Int> {
+    let n = idx.dims()[0];
+    if n <= INDEX_PIECE || !needs_pieces(&x.device()) {
+        return x.select(0, idx);
+    }
+    let pieces = (0..n)
+        .step_by(INDEX_PIECE)
+        .map(|s| x.clone().select(0, idx.clone().narrow(0, s, INDEX_PIECE.min(n - s))))
+        .collect();
+    Tensor::cat(pieces, 0)
+}
+
+/// `x.cumsum(0)` of a column `[n, 1]`, exact on wgpu: burn-cubecl 0.22.1's
+/// cumsum stops at 65535 elements there (measured on lavapipe: a cumsum of
+/// 70,000 ones ends at 65535), so it runs in pieces, each carrying the
+/// previous piece's last sum.
+pub fn cumsum_rows(x: Tensor<2>) -> Tensor<2> {
+    let n = x.dims()[0];
+    if n <= INDEX_PIECE || !needs_pieces(&x.device()) {
+        return x.cumsum(0);
+    }
+    let mut pieces: Vec<Tensor<2>> = Vec::new();
+    for s in (0..n).step_by(INDEX_PIECE) {
+        let mut piece = x.clone().narrow(0, s, INDEX_PIECE.min(n - s)).cumsum(0);
+        if let Some(previous) = pieces.last() {
+            let len = previous.dims()[0];
+            piece = piece + previous.clone().narrow(0, len - 1, 1);
+        }
+        pieces.push(piece);
+    }
+    Tensor::cat(pieces, 0)
+}
+
 /// `target.select_assign(0, idx, values, op)` in pieces of at most `INDEX_PIECE` indices (see there).
 pub fn assign_rows<const D: usize>(
     target: Tensor<D>,
