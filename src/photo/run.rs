@@ -60,12 +60,12 @@ pub fn run_training(
     let mut transfers = fit(&mut trainer, dataset, out, progress)?;
     trainer.save(dataset, out)?;
     progress.event(Event::PhaseDone { phase: Phase::Fit, seconds: started.elapsed().as_secs_f64() });
-    let t = Instant::now();
-    let before = transfer::counted();
     progress.info(format!("evaluating {} test views", dataset.test.len()));
-    let report = evaluate(&trainer.grid, dataset, &dataset.test, &trainer.config, Some(&out.join("test")))?;
-    progress.event(Event::PhaseDone { phase: Phase::Evaluate, seconds: t.elapsed().as_secs_f64() });
-    transfers.insert("evaluate".into(), PhaseTransfers::new(transfer::counted().since(before), dataset.test.len()));
+    let m =
+        transfer::measure(|| evaluate(&trainer.grid, dataset, &dataset.test, &trainer.config, Some(&out.join("test"))));
+    let report = m.value?;
+    progress.event(Event::PhaseDone { phase: Phase::Evaluate, seconds: m.seconds });
+    transfers.insert("evaluate".into(), PhaseTransfers::new(m.moved, dataset.test.len()));
     for (phase, t) in &transfers {
         progress.event(Event::Detail(t.describe(phase)));
     }
@@ -125,9 +125,8 @@ fn fit(
     let mut rays_done = 0usize;
     while trainer.step < total {
         let steady_step = last_upsample.is_none_or(|s| trainer.step > s);
-        let before = transfer::counted();
-        let st = trainer.step_once()?;
-        let moved = transfer::counted().since(before);
+        let m = transfer::measure(|| trainer.step_once());
+        let (st, moved) = (m.value?, m.moved);
         all = (all.0.plus(moved), all.1 + 1);
         if steady_step {
             steady = (steady.0.plus(moved), steady.1 + 1);

@@ -24,11 +24,14 @@ use crate::util::tensor::{assign_rows, floats, indices, select_rows};
 pub struct StepRows {
     num_rows: usize,
     touched: Option<RowSubset>,
+    /// The touched rows on the device, uploaded at most once per step (every
+    /// sparse gradient and the optimiser step use them).
+    on_device: std::cell::OnceCell<Tensor<1, Int>>,
 }
 
 impl StepRows {
     pub fn dense(num_rows: usize) -> Self {
-        Self { num_rows, touched: None }
+        Self { num_rows, touched: None, on_device: Default::default() }
     }
 
     pub fn sparse(num_rows: usize) -> Self {
@@ -39,11 +42,12 @@ impl StepRows {
     /// only the rows that step set, not a grid-sized map.
     fn sparse_reusing(mut subset: RowSubset, num_rows: usize) -> Self {
         subset.clear(num_rows);
-        Self { num_rows, touched: Some(subset) }
+        Self { num_rows, touched: Some(subset), on_device: Default::default() }
     }
 
     /// Marks `rows` as touched (nothing to do when dense).
     pub fn add(&mut self, rows: &[i32]) {
+        self.on_device.take();
         if let Some(s) = &mut self.touched {
             for &r in rows {
                 s.insert(r);
@@ -70,14 +74,17 @@ impl StepRows {
         indices(grid_rows.iter().map(|&r| self.slot(r)).collect(), device)
     }
 
+    /// The touched rows on the device (sparse only).
+    fn touched_on_device(&self, device: &burn::tensor::Device) -> Option<Tensor<1, Int>> {
+        let s = self.touched.as_ref()?;
+        Some(self.on_device.get_or_init(|| indices(s.rows().to_vec(), device)).clone())
+    }
+
     /// The step's buffer taken from a grid-sized gradient (dense: itself).
     pub fn take_from(&self, grid_sized: Tensor<2>) -> Tensor<2> {
-        match &self.touched {
+        match self.touched_on_device(&grid_sized.device()) {
             None => grid_sized,
-            Some(s) => {
-                let device = grid_sized.device();
-                select_rows(grid_sized, indices(s.rows().to_vec(), &device))
-            }
+            Some(ids) => select_rows(grid_sized, ids),
         }
     }
 
@@ -154,15 +161,15 @@ impl StyleField {
     /// One RMSprop step on the SH rows of `rows` (density untouched); `grad`
     /// is the step's gradient buffer.
     pub fn rmsprop(&mut self, grad: Tensor<2>, rows: StepRows, lr: f32, opt: Rmsprop) {
-        match rows.touched {
-            None => opt.step_dense(&mut self.grid.sh, &mut self.rms, grad, lr),
-            Some(s) => {
+        let ids = rows.touched_on_device(&self.grid.device());
+        match (rows.touched, ids) {
+            (Some(s), Some(ids)) => {
                 if !s.rows().is_empty() {
-                    let ids = indices(s.rows().to_vec(), &self.grid.device());
                     opt.step_rows(&mut self.grid.sh, &mut self.rms, &ids, grad, lr);
                 }
                 self.touched.set(s);
             }
+            _ => opt.step_dense(&mut self.grid.sh, &mut self.rms, grad, lr),
         }
     }
 

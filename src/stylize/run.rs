@@ -48,17 +48,16 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let mut moved = BTreeMap::new();
     let mut warnings = WarningLog::new(progress);
 
-    let t = Instant::now();
-    let before = transfer::counted();
-    let registration = registration(job, &ck, &dataset, &case, &mut warnings)?;
+    let m = transfer::measure(|| registration(job, &ck, &dataset, &case, &mut warnings));
+    let registration = m.value?;
+    seconds.insert("registration".to_string(), m.seconds);
+    moved.insert("registration".to_string(), PhaseTransfers::new(m.moved, 0));
     let registered_fraction = registration.fraction_overall();
     if job.method == Method::RefNpr && registration.views.iter().all(|v| v.registration.pixels.is_empty()) {
         warnings.push(
             "R³ registered no training pixel: L_ref uses the reference view only, the rest comes from TCM".into(),
         );
     }
-    seconds.insert("registration".to_string(), t.elapsed().as_secs_f64());
-    moved.insert("registration".to_string(), PhaseTransfers::new(transfer::counted().since(before), 0));
 
     let (styles, style_colours, colour_transfer) =
         style_side(job, &case, &dataset, &registration, ck.meta.background, &mut warnings)?;
@@ -67,19 +66,17 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     if let (true, Some(tf)) = (job.method == Method::Arf && cfg.arf.transfer_grid, colour_transfer) {
         st.field.apply_colour_transfer(&tf);
     }
-    let t = Instant::now();
-    let before = transfer::counted();
-    st.refit(progress)?;
-    seconds.insert("refit".to_string(), t.elapsed().as_secs_f64());
+    let m = transfer::measure(|| st.refit(progress));
+    m.value?;
+    seconds.insert("refit".to_string(), m.seconds);
     let refit_steps = st.curve.iter().filter(|p| p.phase == StepKind::Refit).count();
-    moved.insert("refit".to_string(), PhaseTransfers::new(transfer::counted().since(before), refit_steps));
+    moved.insert("refit".to_string(), PhaseTransfers::new(m.moved, refit_steps));
 
-    let t = Instant::now();
     let colour = job.method == Method::RefNpr && cfg.ablation.use_colour_loss && case.color_pre;
-    let before = transfer::counted();
-    let (guidance, colour_matched) = st.guidance(&styles, keeps_content(job), colour, progress)?;
-    seconds.insert("content".to_string(), t.elapsed().as_secs_f64());
-    moved.insert("content".to_string(), PhaseTransfers::new(transfer::counted().since(before), dataset.train.len()));
+    let m = transfer::measure(|| st.guidance(&styles, keeps_content(job), colour, progress));
+    let (guidance, colour_matched) = m.value?;
+    seconds.insert("content".to_string(), m.seconds);
+    moved.insert("content".to_string(), PhaseTransfers::new(m.moved, dataset.train.len()));
     if colour {
         // What L_color pulls each view towards, for inspection (small: one entry per 16x16 pixels).
         let [w, h] = image_size;

@@ -134,16 +134,18 @@ struct LossParts {
     content: Option<Tensor<1>>,
 }
 
-impl LossParts {
-    /// Adds `value`'s (detached) value to a part.
-    fn add(part: &mut Option<Tensor<1>>, value: &Tensor<1>) {
-        let value = value.clone().inner();
-        *part = Some(match part.take() {
-            None => value,
-            Some(sum) => sum + value,
-        });
-    }
+/// Adds `value`'s detached value to a running sum kept on the device
+/// (read once, when the sum is complete: a read per term would wait for
+/// the device's queue each time).
+fn accumulate(sum: &mut Option<Tensor<1>>, value: &Tensor<1>) {
+    let value = value.clone().inner();
+    *sum = Some(match sum.take() {
+        None => value,
+        Some(s) => s + value,
+    });
+}
 
+impl LossParts {
     /// All parts and the total, read in one transfer (absent parts are 0).
     fn read(self, total: &Tensor<1>) -> ImageLosses {
         let parts = [self.image_tv, self.feature, self.colour, self.content, Some(total.clone().inner())];
@@ -318,18 +320,18 @@ impl<'a> Stylizer<'a> {
             let smooth = epoch >= smooth_start;
             if smooth && smooth_started.is_none() {
                 smooth_started = Some(std::time::Instant::now());
-                let before = transfer::counted();
-                let t = self.template(styles)?;
-                guidance.guides = self.guides(Some(&t), false, false, progress)?.0;
-                guidance.template = Some(t);
-                guides_moved = transfer::counted().since(before);
+                let m = transfer::measure(|| -> Result<_> {
+                    let t = self.template(styles)?;
+                    Ok((self.guides(Some(&t), false, false, progress)?.0, t))
+                });
+                let (guides, t) = m.value?;
+                (guidance.guides, guidance.template, guides_moved) = (guides, Some(t), m.moved);
             }
             let mut order: Vec<usize> = (0..views).collect();
             order.shuffle(&mut epoch_rng(self.cfg.seed, epoch));
             for v in order {
-                let before = transfer::counted();
-                let point = self.image_step(v, step, total_steps, &guidance, smooth)?;
-                let moved = transfer::counted().since(before);
+                let m = transfer::measure(|| self.image_step(v, step, total_steps, &guidance, smooth));
+                let (point, moved) = (m.value?, m.moved);
                 if smooth {
                     smooth_moved = smooth_moved.plus(moved);
                 } else {
@@ -571,7 +573,7 @@ impl<'a> Stylizer<'a> {
         let loss_of = |rgb: Tensor<2>, start: usize, len: usize| {
             let d = rgb - target.clone().narrow(0, start, len);
             let loss = (d.clone() * d).sum() * scale;
-            LossParts::add(&mut value.borrow_mut(), &loss);
+            accumulate(&mut value.borrow_mut(), &loss);
             loss
         };
         let (sh, chunk) = (&self.field.grid.sh, self.cfg.render_chunk);
@@ -759,7 +761,7 @@ impl<'a> Stylizer<'a> {
         let l = &self.cfg.loss;
         let mut parts = LossParts::default();
         let tv = losses::image_tv(image.clone());
-        LossParts::add(&mut parts.image_tv, &tv);
+        accumulate(&mut parts.image_tv, &tv);
         let mut total = tv * l.image_tv;
         match self.job.method {
             Method::RefNpr => {
@@ -771,11 +773,11 @@ impl<'a> Stylizer<'a> {
                         if smooth { (l.smooth_feature, 0.0) } else { (l.feature, l.content) };
                     for (b, r) in render.into_iter().enumerate() {
                         let style = losses::cosine_distance(r.clone(), template.guidance(b, &guide.matches[b]));
-                        LossParts::add(&mut parts.feature, &style);
+                        accumulate(&mut parts.feature, &style);
                         total = total + style * weight;
                         if content_weight > 0.0 && b < guide.content.len() {
                             let c = losses::content_loss(r, guide.content[b].clone());
-                            LossParts::add(&mut parts.content, &c);
+                            accumulate(&mut parts.content, &c);
                             total = total + c * (weight * content_weight);
                         }
                     }
@@ -787,7 +789,7 @@ impl<'a> Stylizer<'a> {
                         WhiteOn::Render => c.mask.clone() * losses::not_white(patches.clone().detach(), l.colour_white),
                     };
                     let loss = losses::colour_loss(patches, c.target.clone(), mask, l.colour_norm);
-                    LossParts::add(&mut parts.colour, &loss);
+                    accumulate(&mut parts.colour, &loss);
                     total = total + loss * l.colour;
                 }
             }
@@ -801,11 +803,11 @@ impl<'a> Stylizer<'a> {
                     style_bank.expect("ARF has a style bank").clone(),
                     self.cfg.search_chunk,
                 );
-                LossParts::add(&mut parts.feature, &nnfm);
+                accumulate(&mut parts.feature, &nnfm);
                 total = total + nnfm * a.nnfm;
                 if let (true, Some(content)) = (a.content > 0.0, guide.content.first()) {
                     let c = losses::content_loss(render, content.clone());
-                    LossParts::add(&mut parts.content, &c);
+                    accumulate(&mut parts.content, &c);
                     total = total + c * a.content;
                 }
             }

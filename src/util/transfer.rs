@@ -58,6 +58,21 @@ pub fn counted() -> Transfers {
     COUNTED.with(Cell::get)
 }
 
+/// A piece of work's value, what it moved and how long it took.
+pub struct Measured<T> {
+    pub value: T,
+    pub moved: Transfers,
+    pub seconds: f64,
+}
+
+/// Runs `work`, counting what it moves and timing it: every phase and
+/// step whose traffic is reported is measured through here.
+pub fn measure<T>(work: impl FnOnce() -> T) -> Measured<T> {
+    let (before, started) = (counted(), std::time::Instant::now());
+    let value = work();
+    Measured { value, moved: counted().since(before), seconds: started.elapsed().as_secs_f64() }
+}
+
 impl Transfers {
     /// What was moved between `earlier` and `self` (two readings of [`counted`]).
     pub fn since(self, earlier: Transfers) -> Transfers {
