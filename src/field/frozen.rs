@@ -16,7 +16,7 @@ use crate::field::march::{MarchParams, Marcher, SampleBatch};
 use crate::scene::camera::Ray;
 use crate::scene::sh;
 use crate::util::chunk_ranges;
-use crate::util::tensor::{assign_rows, cumsum_rows, floats, indices, select_int_rows, select_rows, to_vec};
+use crate::util::tensor::{assign_rows, cumsum_rows, floats, indices, select_rows, to_vec};
 
 /// Rays marched at once: bounds the unfiltered sample buffers of one march
 /// (every sample of the chunk before the weight cut) to a few hundred MB.
@@ -252,13 +252,13 @@ impl DeviceSamples {
                 assign_rows(Tensor::zeros([total, 1], &device), indices(marks, &device), ones, IndexingUpdateOp::Add);
             cumsum_rows(marked).reshape([total]).int()
         };
-        let first = select_int_rows(select_int_rows(self.first_sample.clone(), ray_ids), ray_of_sample.clone());
-        let start = select_int_rows(indices(starts, &device), ray_of_sample.clone());
+        let first = select_rows(select_rows(self.first_sample.clone(), ray_ids), ray_of_sample.clone());
+        let start = select_rows(indices(starts, &device), ray_of_sample.clone());
         let sample_ids = first + Tensor::arange(0..total as i64, &device) - start;
         FrozenTensors {
             num_rays: rays.len(),
             num_samples: total,
-            corner_rows: select_int_rows(self.corner_rows.clone(), sample_ids.clone()).reshape([total * 8]),
+            corner_rows: select_rows(self.corner_rows.clone(), sample_ids.clone()).reshape([total * 8]),
             colour_weights: select_rows(self.colour_weights.clone(), sample_ids.clone()).reshape([total * 8, 1]),
             weight: select_rows(self.weight.clone(), sample_ids),
             ray_of_sample,

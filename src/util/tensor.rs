@@ -2,6 +2,7 @@
 //! place the library moves values between host and device (each move is
 //! counted by `util::transfer`).
 
+use burn::tensor::kind::Basic;
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
 
 use crate::util::transfer;
@@ -53,24 +54,11 @@ pub fn is_host_memory(device: &Device) -> bool {
 
 /// `x.select(0, idx)` whose backward stays exact on wgpu: long index lists
 /// are gathered in pieces and concatenated (each piece's backward is a
-/// `select_assign` of at most `INDEX_PIECE` indices).
-pub fn select_rows<const D: usize>(x: Tensor<D>, idx: Tensor<1, Int>) -> Tensor<D> {
-    let n = idx.dims()[0];
-    if n <= INDEX_PIECE || !needs_pieces(&x.device()) {
-        return x.select(0, idx);
-    }
-    let pieces = (0..n)
-        .step_by(INDEX_PIECE)
-        .map(|s| x.clone().select(0, idx.clone().narrow(0, s, INDEX_PIECE.min(n - s))))
-        .collect();
-    Tensor::cat(pieces, 0)
-}
-
-/// [`select_rows`] for index tensors: long index lists are cut into the
-/// same pieces on GPUs (burn-cubecl 0.22.1 has two kernels known to stop
-/// at 65535 elements: `select_assign` and `cumsum`; not shown for `select`,
-/// kept within the bound all the same).
-pub fn select_int_rows<const D: usize>(x: Tensor<D, Int>, idx: Tensor<1, Int>) -> Tensor<D, Int> {
+/// `select_assign` of at most `INDEX_PIECE` indices). Index tensors are
+/// gathered in the same pieces (burn-cubecl 0.22.1 has two kernels known
+/// to stop at 65535 elements, `select_assign` and `cumsum`; `select` is
+/// not shown to, and is kept within the bound all the same).
+pub fn select_rows<const D: usize, K: Basic>(x: Tensor<D, K>, idx: Tensor<1, Int>) -> Tensor<D, K> {
     let n = idx.dims()[0];
     if n <= INDEX_PIECE || !needs_pieces(&x.device()) {
         return x.select(0, idx);
