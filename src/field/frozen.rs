@@ -205,14 +205,14 @@ impl DeviceSamples {
         }
     }
 
-    pub fn num_rays(&self) -> usize {
-        self.ray_offsets.len().saturating_sub(1)
-    }
-
-    /// Bytes held on the device.
-    pub fn bytes(&self) -> usize {
-        let samples = *self.ray_offsets.last().unwrap_or(&0) as usize;
-        self.num_rays() * 8 + samples * (8 * 4 + 8 * 4 + 4)
+    /// [`gather`](Self::gather) of `rays` in chunks of `chunk` rays:
+    /// `(first ray, rays, samples)` per chunk, gathered as it is reached.
+    pub fn gather_chunks<'a>(
+        &'a self,
+        rays: &'a [usize],
+        chunk: usize,
+    ) -> impl Iterator<Item = (usize, usize, FrozenTensors)> + 'a {
+        chunk_ranges(rays.len(), chunk).map(move |(s, n)| (s, n, self.gather(&rays[s..s + n])))
     }
 
     /// The samples of `rays` (in that order; repeats allowed): the same

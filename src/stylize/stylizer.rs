@@ -34,7 +34,6 @@ use crate::stylize::losses;
 use crate::stylize::styles::{colour_stats, is_background};
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
 use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
-use crate::util::chunk_ranges;
 use crate::util::image::Image;
 use crate::util::progress::{Event, Phase, Progress};
 use crate::util::rng::{Stream, epoch_rng, step_rng};
@@ -189,7 +188,7 @@ pub struct Stylizer<'a> {
     /// Sample lists of the registered pixels, in that order (None = re-marched when picked).
     registered_samples: Option<FrozenSamples>,
     /// Device copies of `reference_lists` and `registered_samples`, when
-    /// the pseudo-rays are gathered there (`pseudo_rays_on_device`).
+    /// the pseudo-rays are gathered there (`samples_on_device`).
     reference_on_device: Option<DeviceSamples>,
     registered_on_device: Option<DeviceSamples>,
     /// ARF: the photos are recoloured with this before the refit.
@@ -580,8 +579,7 @@ impl<'a> Stylizer<'a> {
         let grad = match rays {
             RaySet::Host(samples) => chunked_gradient(sh, samples, self.background, chunk, rows, &loss_of),
             RaySet::Gathered(lists, picks) => {
-                let chunks = chunk_ranges(picks.len(), chunk).map(|(s, n)| (s, n, lists.gather(&picks[s..s + n])));
-                gathered_gradient(sh, chunks, self.background, rows, &loss_of)
+                gathered_gradient(sh, lists.gather_chunks(picks, chunk), self.background, rows, &loss_of)
             }
         };
         (grad, value.into_inner().map_or(0.0, scalar))
@@ -722,9 +720,8 @@ impl<'a> Stylizer<'a> {
         // the device) or uploaded, once for both passes.
         let sh = &self.field.grid.sh;
         let gathered: Option<Vec<_>> = self.views_on_device[v].as_ref().map(|lists| {
-            chunk_ranges(samples.num_rays, self.cfg.render_chunk)
-                .map(|(s, n)| (s, n, lists.gather(&(s..s + n).collect::<Vec<_>>())))
-                .collect()
+            let all: Vec<usize> = (0..samples.num_rays).collect();
+            lists.gather_chunks(&all, self.cfg.render_chunk).collect()
         });
         let uploaded = match gathered {
             Some(_) => Vec::new(),
