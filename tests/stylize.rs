@@ -708,6 +708,21 @@ fn bad_input_is_refused_with_the_file_named() {
     let err = run_stylize(&job(&bogus, &case, &out, quick_config(1), Method::RefNpr), &refnpr::Quiet).unwrap_err();
     assert!(format!("{err:#}").contains("checkpoint.bin"), "{err:#}");
 
+    // A run already writing into the output folder: the second refuses, naming it.
+    let case = write_case(t.path(), &scene, 0, "");
+    let lock = refnpr::util::lock::OutputLock::acquire(&out).unwrap();
+    let err = run_stylize(&job(&photo, &case, &out, quick_config(1), Method::RefNpr), &refnpr::Quiet).unwrap_err();
+    assert!(format!("{err:#}").contains("in use by another refnpr run"), "{err:#}");
+    drop(lock);
+
+    // A learning rate that makes the run diverge: stopped, with its phase
+    // and step named, and no stylized checkpoint written.
+    let mut absurd = quick_config(1);
+    (absurd.schedule.lr, absurd.schedule.lr_final) = (3e38, 3e38);
+    let err = run_stylize(&job(&photo, &case, &out, absurd, Method::RefNpr), &refnpr::Quiet).unwrap_err();
+    assert!(format!("{err:#}").contains("diverged at step"), "{err:#}");
+    assert!(!out.join("checkpoint.bin").exists());
+
     let err = StylizeConfig::from_toml_str("[loss]\nfeature_weight = 2.0\n", "my.toml").unwrap_err();
     assert!(format!("{err:#}").contains("my.toml") && format!("{err:#}").contains("feature_weight"), "{err:#}");
     let err = StylizeConfig::from_toml_str("[schedule]\nsmooth_fraction = 2.0\n", "my.toml").unwrap_err();

@@ -202,3 +202,36 @@ fn a_step_too_large_for_the_adapters_buffers_is_refused_with_the_fix() {
         }
     }
 }
+
+/// A learning rate that makes the fit diverge stops the run with the phase and
+/// step named; a field holding NaN is never written over a good checkpoint.
+#[test]
+fn a_diverging_fit_stops_and_keeps_the_last_good_checkpoint() {
+    let t = TempDir::new("diverge");
+    let ds = tiny_scene(&t.path().join("scene"));
+    let out = t.path().join("run");
+    let mut cfg = tiny_config(40);
+    cfg.optim.lr_sh = 3e38;
+    cfg.optim.lr_sh_final = 3e38;
+    cfg.optim.lr_density = 3e38;
+    cfg.optim.lr_density_final = 3e38;
+    let err = run_training(&ds, cfg, &out, common::backend(), false, &refnpr::Quiet).unwrap_err();
+    let err = format!("{err:#}");
+    assert!(err.contains("fit diverged at step") && err.contains("no checkpoint"), "{err}");
+    assert!(!out.join("metrics.json").exists() && !out.join("checkpoint.bin").exists());
+
+    // A good checkpoint, then the same trainer's field spoiled: the save is
+    // refused and the file keeps its bytes.
+    let dev = common::device();
+    let mut tr = Trainer::new(&ds, tiny_config(40), &dev).unwrap();
+    tr.step_once().unwrap();
+    tr.save(&ds, &out).unwrap();
+    let good = std::fs::read(out.join("checkpoint.bin")).unwrap();
+    tr.grid.sh = tr.grid.sh.clone().mul_scalar(f32::NAN);
+    let err = format!("{:#}", tr.save(&ds, &out).unwrap_err());
+    assert!(err.contains("refusing to write") && err.contains("NaN"), "{err}");
+    assert_eq!(std::fs::read(out.join("checkpoint.bin")).unwrap(), good);
+    let names: Vec<String> =
+        std::fs::read_dir(&out).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    assert!(!names.iter().any(|n| n.ends_with(".tmp")), "temporary files left behind: {names:?}");
+}

@@ -7,8 +7,8 @@ use crate::field::grid::{GridGeometry, RadianceGrid};
 use crate::photo::config::TrainConfig;
 use crate::scene::camera::{Camera, NdcParams};
 use crate::scene::data::DatasetKind;
-use crate::util::files;
 use crate::util::tensor::{floats, to_vec};
+use crate::util::{diverged, files};
 use anyhow::{Context, Result, bail};
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
@@ -97,6 +97,18 @@ pub fn save(
         opt_density: to_vec(opt_density.clone()),
         opt_sh: to_vec(opt_sh.clone()),
     };
+    let arrays = [("density", &payload.density[..]), ("SH colour", &payload.sh), ("optimiser state", &payload.opt_sh)];
+    if let Some(what) = diverged::first_non_finite(&arrays) {
+        let kept = match path.exists() {
+            true => "the file keeps its previous content",
+            false => "nothing was written",
+        };
+        bail!(
+            "refusing to write {} at step {}: the field's {what} holds NaN or infinite values (the run diverged); {kept}",
+            path.display(),
+            meta.step
+        );
+    }
     files::save(path, MAGIC, &payload)
 }
 

@@ -15,10 +15,11 @@ use crate::photo::config::TrainConfig;
 use crate::photo::trainer::Trainer;
 use crate::scene::data::Dataset;
 use crate::util::backend::BackendKind;
-use crate::util::files;
+use crate::util::lock::OutputLock;
 use crate::util::memory::peak_rss_mb;
 use crate::util::progress::{Event, Phase, Progress};
 use crate::util::transfer::{self, PhaseTransfers, Transfers};
+use crate::util::{diverged, files};
 
 /// What `refnpr train` writes to `RUN/metrics.json`.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -51,7 +52,7 @@ pub fn run_training(
     resume: bool,
     progress: &dyn Progress,
 ) -> Result<TrainMetrics> {
-    files::create_dir(out)?;
+    let _lock = OutputLock::acquire(out)?;
     let checkpoint = out.join(checkpoint::CHECKPOINT_FILE);
     let resume_from = (resume && checkpoint.exists()).then_some(checkpoint.as_path());
     let mut trainer = start(dataset, config, resume_from, backend, progress)?;
@@ -123,10 +124,18 @@ fn fit(
     progress.event(Event::Start { phase: Phase::Fit, done: trainer.step, total });
     let mut segment = Instant::now();
     let mut rays_done = 0usize;
+    let checkpoint = out.join(checkpoint::CHECKPOINT_FILE);
+    // The step of this run's last checkpoint: a resumed run starts from one.
+    let mut saved_at = (trainer.step > 0).then_some(trainer.step);
     while trainer.step < total {
         let steady_step = last_upsample.is_none_or(|s| trainer.step > s);
         let m = transfer::measure(|| trainer.step_once());
         let (st, moved) = (m.value?, m.moved);
+        let kept = match saved_at {
+            Some(k) => format!("the last good checkpoint, {} (step {k}), is kept", checkpoint.display()),
+            None => "no checkpoint of this run was written yet".to_string(),
+        };
+        diverged::check_loss(st.mse, Phase::Fit, trainer.step, &kept)?;
         all = (all.0.plus(moved), all.1 + 1);
         if steady_step {
             steady = (steady.0.plus(moved), steady.1 + 1);
@@ -147,6 +156,7 @@ fn fit(
             segment = Instant::now();
             rays_done = 0;
             trainer.save(dataset, out)?;
+            saved_at = Some(trainer.step);
         }
     }
     trainer.train_seconds += segment.elapsed().as_secs_f64();

@@ -24,6 +24,7 @@ use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
 use crate::stylize::{Method, StepKind, StylizeJob, StylizeReport};
 use crate::util::files;
 use crate::util::image::Image;
+use crate::util::lock::OutputLock;
 use crate::util::memory::{available_memory_bytes, peak_rss_mb};
 use crate::util::progress::{Event, Phase, Progress, WarningLog};
 use crate::util::transfer::{self, PhaseTransfers};
@@ -43,7 +44,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         );
     }
     let image_size = preflight(job, &ck, &dataset)?;
-    files::create_dir(&job.out)?;
+    let _lock = OutputLock::acquire(&job.out)?;
     let mut seconds = BTreeMap::new();
     let mut moved = BTreeMap::new();
     let mut warnings = WarningLog::new(progress);

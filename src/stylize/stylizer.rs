@@ -16,7 +16,7 @@ use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 
 use crate::eval::metrics::psnr_from_mse;
-use crate::field::checkpoint::CheckpointMeta;
+use crate::field::checkpoint::{self, CheckpointMeta};
 use crate::field::frozen::{self, DeviceSamples, FrozenSamples};
 use crate::field::grid::RadianceGrid;
 use crate::field::march::{BlockOccupancy, MarchParams, Marcher};
@@ -34,6 +34,7 @@ use crate::stylize::losses;
 use crate::stylize::styles::{colour_stats, is_background};
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
 use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
+use crate::util::diverged;
 use crate::util::image::Image;
 use crate::util::progress::{Event, Phase, Progress};
 use crate::util::rng::{Stream, epoch_rng, step_rng};
@@ -331,6 +332,7 @@ impl<'a> Stylizer<'a> {
             for v in order {
                 let m = transfer::measure(|| self.image_step(v, step, total_steps, &guidance, smooth));
                 let (point, moved) = (m.value?, m.moved);
+                diverged::check_loss(point.total, Phase::ImageEpochs, step + 1, &self.nothing_written())?;
                 if smooth {
                     smooth_moved = smooth_moved.plus(moved);
                 } else {
@@ -359,6 +361,12 @@ impl<'a> Stylizer<'a> {
             smooth_steps: PhaseTransfers::new(smooth_moved, (s.image_epochs - smooth_start) * views),
             smooth_guides: PhaseTransfers::new(guides_moved, 0),
         })
+    }
+
+    /// What a diverged run leaves: this run's checkpoint is written only at
+    /// its end, so nothing of it.
+    fn nothing_written(&self) -> String {
+        format!("nothing was written to {}", self.job.out.join(checkpoint::CHECKPOINT_FILE).display())
     }
 
     /// One image step on training view `v`: the image losses by deferred
@@ -538,6 +546,7 @@ impl<'a> Stylizer<'a> {
         }
         for step in 0..steps {
             let mse = self.refit_step(step, &rays, &colours);
+            diverged::check_loss(mse, Phase::Refit, step + 1, &self.nothing_written())?;
             let message = format!("mse {mse:.5} psnr {:.2}", psnr_from_mse(mse));
             progress.event(Event::Step { phase: Phase::Refit, done: step + 1, total: steps, message });
             self.curve.push(CurvePoint::refit(step, mse));

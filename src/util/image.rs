@@ -1,13 +1,15 @@
 //! The one image type of the library, and writing what a person looks at:
 //! PNG images, depth maps, GIF animations.
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use burn::tensor::{Device, Tensor};
 use image::codecs::gif::{GifEncoder, Repeat};
+use image::codecs::png::PngEncoder;
 use image::{Delay, Frame, RgbImage, RgbaImage};
 use std::path::Path;
 
 use crate::scene::camera::Camera;
+use crate::util::files;
 
 /// An RGB image: interleaved, row-major, values in [0, 1].
 #[derive(Debug, Clone, PartialEq)]
@@ -83,10 +85,21 @@ pub fn to_rgb8(w: u32, h: u32, rgb: &[f32]) -> RgbImage {
 }
 
 pub fn save_png(path: &Path, w: u32, h: u32, rgb: &[f32]) -> Result<()> {
-    if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    write_png(path, to_rgb8(w, h, rgb))
+}
+
+/// Writes a PNG (8-bit RGB, RGBA or grey) atomically.
+pub fn write_png(path: &Path, img: impl Into<image::DynamicImage>) -> Result<()> {
+    let img = img.into();
+    files::write_atomic(path, |w| img.write_with_encoder(PngEncoder::new(w)).map_err(|e| encode_error(e, path)))
+}
+
+/// An encoder's error: an I/O one named like every other write's.
+fn encode_error(e: image::ImageError, path: &Path) -> anyhow::Error {
+    match e {
+        image::ImageError::IoError(io) => files::io_error(io, path),
+        other => anyhow::Error::new(other).context(format!("cannot encode {}", path.display())),
     }
-    to_rgb8(w, h, rgb).save(path).with_context(|| format!("cannot write {}", path.display()))
 }
 
 /// A depth map as a colour image: near = bright yellow, far = dark purple
@@ -119,13 +132,14 @@ pub fn depth_to_rgb(depth: &[Option<f32>]) -> Vec<f32> {
 
 /// Writes an animated GIF (looping), one frame per image.
 pub fn save_gif(path: &Path, frames: &[RgbImage], delay_ms: u32) -> Result<()> {
-    let file = std::fs::File::create(path).with_context(|| format!("cannot create {}", path.display()))?;
-    let mut enc = GifEncoder::new_with_speed(std::io::BufWriter::new(file), 10);
-    enc.set_repeat(Repeat::Infinite).context("gif repeat")?;
-    for f in frames {
-        let rgba: RgbaImage = image::DynamicImage::ImageRgb8(f.clone()).to_rgba8();
-        enc.encode_frame(Frame::from_parts(rgba, 0, 0, Delay::from_numer_denom_ms(delay_ms, 1)))
-            .with_context(|| format!("cannot write a frame of {}", path.display()))?;
-    }
-    Ok(())
+    files::write_atomic(path, |w| {
+        let mut enc = GifEncoder::new_with_speed(w, 10);
+        enc.set_repeat(Repeat::Infinite).map_err(|e| encode_error(e, path))?;
+        for f in frames {
+            let rgba: RgbaImage = image::DynamicImage::ImageRgb8(f.clone()).to_rgba8();
+            enc.encode_frame(Frame::from_parts(rgba, 0, 0, Delay::from_numer_denom_ms(delay_ms, 1)))
+                .map_err(|e| encode_error(e, path))?;
+        }
+        Ok(())
+    })
 }

@@ -1,11 +1,13 @@
 //! Generic helpers every stage uses: the backend choice, tensor conversions,
-//! the one `Image` type with PNG/GIF/npy I/O, file writes that name the file
-//! on failure, progress events, per-step random generators, memory readings, host-device traffic counts.
+//! the one `Image` type with PNG/GIF/npy I/O, atomic file writes that name the file
+//! on failure, one run per output folder, progress events, per-step random generators, memory readings, host-device traffic counts.
 
 pub mod backend;
 pub mod config;
+pub mod diverged;
 pub mod files;
 pub mod image;
+pub mod lock;
 pub mod memory;
 pub mod npy;
 pub mod progress;

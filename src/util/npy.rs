@@ -92,7 +92,7 @@ pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<()> {
     for v in data {
         out.extend_from_slice(&v.to_le_bytes());
     }
-    std::fs::write(path, out).with_context(|| format!("cannot write {}", path.display()))
+    crate::util::files::write_bytes(path, &out)
 }
 
 #[cfg(test)]

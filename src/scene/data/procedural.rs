@@ -8,6 +8,7 @@
 //! the view: the stylized renders are an exact target for stylization tests.
 
 use crate::scene::camera::{Camera, Intrinsics, look_at};
+use crate::util::image::write_png;
 use crate::util::{files, npy};
 use anyhow::{Context, Result};
 use glam::{Vec3, Vec4};
@@ -336,10 +337,7 @@ pub fn cameras(opts: &SceneOptions, split: &str) -> Vec<Camera> {
 
 fn save_rgba(path: &Path, w: u32, h: u32, rgba: &[f32]) -> Result<()> {
     let bytes: Vec<u8> = rgba.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
-    image::RgbaImage::from_raw(w, h, bytes)
-        .context("image buffer size")?
-        .save(path)
-        .with_context(|| format!("cannot write {}", path.display()))
+    write_png(path, image::RgbaImage::from_raw(w, h, bytes).context("image buffer size")?)
 }
 
 /// Writes the scene (photoreal and stylized) under `out`.
@@ -357,10 +355,8 @@ pub fn write_scene(out: &Path, opts: &SceneOptions) -> Result<()> {
                 save_rgba(&dir.join(format!("r_{i}.png")), w, h, &rgba)?;
                 if !stylized {
                     npy::write_f32(&dir.join(format!("r_{i}_depth.npy")), &[h as usize, w as usize], &depth)?;
-                    image::GrayImage::from_raw(w, h, ids)
-                        .context("id buffer size")?
-                        .save(dir.join(format!("r_{i}_id.png")))
-                        .with_context(|| format!("cannot write id map in {}", dir.display()))?;
+                    let id_map = image::GrayImage::from_raw(w, h, ids).context("id buffer size")?;
+                    write_png(&dir.join(format!("r_{i}_id.png")), id_map)?;
                 }
                 let m = cam.c2w.transpose().to_cols_array_2d();
                 frames.push(json!({ "file_path": format!("./{split}/r_{i}"), "transform_matrix": m }));
