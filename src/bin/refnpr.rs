@@ -20,7 +20,7 @@ use refnpr::stylize::config::StylizeConfig;
 use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::{Method, StylizeJob};
 use refnpr::tools::info::SystemInfo;
-use refnpr::tools::{bench, demo, paint};
+use refnpr::tools::{bench, demo, fuzz, paint};
 use refnpr::util::{config, files, image};
 use refnpr::{BackendKind, Console, Progress};
 
@@ -203,6 +203,26 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Feeds a parser of outside input (or the command line itself) mutated real files
+    /// for a while: no input may panic or hang. Targets: npy, transforms, reference_toml,
+    /// data_config, train_config, stylize_config, checkpoint, registration, image, cli.
+    Fuzz {
+        target: String,
+        /// Stop after this many seconds...
+        #[arg(long, default_value_t = 60.0)]
+        seconds: f64,
+        /// ... or this many inputs.
+        #[arg(long, default_value_t = u64::MAX)]
+        cases: u64,
+        /// A case running longer than this is a hang (its input is saved, the run stops).
+        #[arg(long, default_value_t = 5.0)]
+        case_seconds: f64,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Real scenes to add to the seed inputs, when the folder exists.
+        #[arg(long, default_value = "../shared/data")]
+        shared_data: PathBuf,
+    },
     /// Writes the built-in procedural scene (Blender layout, with depth, ids and a stylized twin).
     Scene {
         #[arg(long)]
@@ -250,6 +270,58 @@ enum Command {
         #[arg(long, value_enum)]
         backend: Option<BackendKind>,
     },
+}
+
+/// `refnpr fuzz`: one target, a JSON report; crashes make it fail.
+fn run_fuzz(target: &str, seconds: f64, cases: u64, case_seconds: f64, seed: u64, shared: &Path) -> Result<()> {
+    let scratch = std::env::temp_dir().join(format!("refnpr-fuzz-{target}-{}", std::process::id()));
+    let t = match target {
+        "cli" => fuzz::Target { name: "cli".into(), seeds: cli_fuzz_seeds(), check: Box::new(parse_cli_bytes) },
+        name => fuzz::target(name, &scratch, shared.is_dir().then_some(shared))?,
+    };
+    let limits = fuzz::Limits { max_cases: cases, max_seconds: seconds, case_seconds, seed };
+    let report = fuzz::run(&t, &limits);
+    std::fs::remove_dir_all(&scratch).ok();
+    let report = report?;
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    ensure!(
+        report.crashes.is_empty(),
+        "{} inputs of {} panicked (saved under {})",
+        report.crashes.len(),
+        target,
+        fuzz::crash_dir().display()
+    );
+    Ok(())
+}
+
+/// Command lines of every subcommand, for the `cli` fuzz target.
+fn cli_fuzz_seeds() -> Vec<Vec<u8>> {
+    [
+        "demo --out demo-out --steps 100 --epochs 2 --backend flex",
+        "train --data scene --out run --config c.toml --steps 40 --resume",
+        "stylize --photo run --reference case --out style --config s.toml --epochs 2 --method arf --style s.png",
+        "eval --run style --reference case --gt twin --robustness 2 --robustness-views near --out e.json",
+        "register --photo run --reference case --out reg --overlays",
+        "render --ckpt run --path orbit --out frames --frames 12",
+        "bench --backends flex,ndarray --res 64 --rays 4096 --repeats 3 --json",
+        "scene --out s --seed 3 --size 32",
+        "fuzz npy --seconds 1.5 --cases 10",
+        "reference --ckpt run --view train:3 --out case",
+        "info --json",
+    ]
+    .iter()
+    .map(|s| s.as_bytes().to_vec())
+    .collect()
+}
+
+/// Parses mutated bytes as a command line (split at spaces): an error is
+/// fine, a panic is not.
+fn parse_cli_bytes(bytes: &[u8]) {
+    let text = String::from_utf8_lossy(bytes);
+    let args = std::iter::once("refnpr").chain(text.split(' ').filter(|a| !a.is_empty()));
+    if let Ok(matches) = Cli::command().try_get_matches_from(args) {
+        drop(Cli::from_arg_matches(&matches));
+    }
 }
 
 fn main() {
@@ -312,6 +384,9 @@ fn run() -> Result<()> {
                 false => println!("{info}"),
             }
             Ok(())
+        }
+        Command::Fuzz { target, seconds, cases, case_seconds, seed, shared_data } => {
+            run_fuzz(&target, seconds, cases, case_seconds, seed, &shared_data)
         }
         Command::Scene { out, seed, size } => {
             procedural::write_scene(&out, &procedural::SceneOptions { seed, size, ..Default::default() })?;

@@ -37,6 +37,10 @@ pub const CASE_JSON: &str = "data_config.json";
 /// The standard render path's length (the LLFF spiral of the NeRF code).
 pub const DEFAULT_PATH_FRAMES: usize = 120;
 
+/// The longest render path a case may ask for (the evaluation renders every
+/// frame; a larger number is a typo, and would allocate without bound).
+pub const MAX_PATH_FRAMES: usize = 10_000;
+
 /// Which camera a reference was painted from.
 #[derive(Debug, Clone, PartialEq)]
 pub enum ViewSpec {
@@ -198,7 +202,11 @@ impl ReferenceCase {
     pub fn from_toml(dir: &Path, text: &str) -> Result<Self> {
         let t: CaseToml = toml::from_str(text).context("malformed reference TOML")?;
         ensure!(!t.reference.is_empty(), "no [[reference]] entries");
-        ensure!(t.path_frames > 0, "path_frames must be positive");
+        ensure!(
+            (1..=MAX_PATH_FRAMES).contains(&t.path_frames),
+            "path_frames must be between 1 and {MAX_PATH_FRAMES}, got {}",
+            t.path_frames
+        );
         let mut references = Vec::new();
         for (i, r) in t.reference.into_iter().enumerate() {
             let view = match (r.view, r.c2w, r.intrinsics) {

@@ -1,8 +1,9 @@
 //! Around the pipeline: benchmarks (`bench`), the one-command demo on the
-//! procedural scene (`demo`), `info` (what the build runs on), and a painterly repaint filter to try
+//! procedural scene (`demo`), `info` (what the build runs on), `fuzz` (every parser of outside input fed mutated files), and a painterly repaint filter to try
 //! stylization without painting by hand (`paint`).
 
 pub mod bench;
 pub mod demo;
+pub mod fuzz;
 pub mod info;
 pub mod paint;

@@ -51,18 +51,22 @@ pub fn parse(bytes: &[u8]) -> Result<NpyArray> {
     }
     let shape_txt = field("'shape':")?;
     let open = shape_txt.find('(').context("shape has no '('")?;
-    let close = shape_txt.find(')').context("shape has no ')'")?;
+    let close = open + shape_txt[open..].find(')').context("shape has no ')'")?;
     let shape: Vec<usize> = shape_txt[open + 1..close]
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
         .map(|s| s.parse::<usize>().with_context(|| format!("bad shape entry '{s}'")))
         .collect::<Result<_>>()?;
-    let count: usize = shape.iter().product();
+    // Checked: a header may claim any shape; the data must be in the file
+    // before anything is allocated for it.
+    let count = shape.iter().try_fold(1usize, |n, &d| n.checked_mul(d));
     let body = &bytes[end..];
-    if body.len() < count * elem {
-        bail!("data is truncated: shape {:?} needs {} bytes, file has {}", shape, count * elem, body.len());
+    match count.and_then(|c| c.checked_mul(elem)) {
+        Some(needed) if needed <= body.len() => {}
+        _ => bail!("data is truncated: shape {shape:?} needs more bytes than the file's {}", body.len()),
     }
+    let count = count.unwrap_or(0);
     let data = (0..count)
         .map(|i| {
             let b = &body[i * elem..(i + 1) * elem];

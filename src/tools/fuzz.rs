@@ -1,0 +1,554 @@
+//! Fuzzing on stable Rust: every parser of outside input is fed mutations of
+//! real files (bit flips, interesting numbers, cut, repeated and spliced
+//! pieces) and must answer with `Ok` or an error, never a panic, a hang or a
+//! huge allocation. No nightly toolchain or coverage instrumentation is
+//! needed: the mutations are structure-aware enough (numbers in text are
+//! replaced by edge values, length fields by huge ones) to reach the checks
+//! behind the syntax. `refnpr fuzz TARGET` runs one target for a while (the
+//! script `scripts/fuzz.sh`); the test suite runs every target briefly.
+
+use std::cell::{Cell, RefCell};
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, Once};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use glam::{Mat4, Vec3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use crate::field::checkpoint::{self, CheckpointMeta};
+use crate::field::grid::{GridGeometry, RadianceGrid};
+use crate::photo::config::TrainConfig;
+use crate::reference::case::{ReferenceCase, read_style};
+use crate::reference::r3::{RegisterParams, ViewRegistration};
+use crate::reference::registration::{NamedRegistration, PhotoRun, ReferencePixels, RegistrationFile};
+use crate::scene::camera::{Camera, Intrinsics};
+use crate::scene::data::{self, DatasetKind, procedural};
+use crate::stylize::config::StylizeConfig;
+use crate::util::backend::BackendKind;
+use crate::util::{files, npy};
+
+/// What one case does with its input: anything but a panic is fine.
+pub type Check = Box<dyn Fn(&[u8]) + Send + Sync>;
+
+/// A parser under test: real inputs to start from, and the call.
+pub struct Target {
+    pub name: String,
+    pub seeds: Vec<Vec<u8>>,
+    pub check: Check,
+}
+
+/// How long to fuzz, and the bounds a case must keep.
+#[derive(Debug, Clone)]
+pub struct Limits {
+    pub max_cases: u64,
+    pub max_seconds: f64,
+    /// A case running longer is a hang: the input is saved and the process stops.
+    pub case_seconds: f64,
+    pub seed: u64,
+}
+
+/// Panics at one place in the code: how many inputs hit it, the first one
+/// saved to `input` for replay.
+#[derive(Debug, Clone, Serialize)]
+pub struct Crash {
+    /// The panic's message and where it was raised.
+    pub message: String,
+    pub count: u64,
+    pub input: PathBuf,
+}
+
+thread_local! {
+    /// Whether this thread is running fuzz cases (its panics are recorded, not printed).
+    static FUZZING: Cell<bool> = const { Cell::new(false) };
+    /// The last panic's message and location on this thread.
+    static LAST_PANIC: RefCell<Option<String>> = const { RefCell::new(None) };
+}
+
+/// Marks this thread as fuzzing until dropped (also on an early return).
+struct FuzzingThread;
+
+impl FuzzingThread {
+    fn start() -> Self {
+        FUZZING.with(|f| f.set(true));
+        Self
+    }
+}
+
+impl Drop for FuzzingThread {
+    fn drop(&mut self) {
+        FUZZING.with(|f| f.set(false));
+    }
+}
+
+/// Installs, once per process, a panic hook that records the panics of
+/// fuzzing threads and passes every other panic to the hook before it (so
+/// concurrent tests keep their own panic messages).
+fn install_panic_hook() {
+    static INSTALLED: Once = Once::new();
+    INSTALLED.call_once(|| {
+        let previous = std::panic::take_hook();
+        std::panic::set_hook(Box::new(move |info| {
+            if !FUZZING.with(Cell::get) {
+                return previous(info);
+            }
+            let place = info.location().map(|l| format!(" at {}:{}", l.file(), l.line())).unwrap_or_default();
+            let message = format!("{}{place}", panic_text(info.payload()));
+            LAST_PANIC.with(|p| *p.borrow_mut() = Some(message));
+        }));
+    });
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub target: String,
+    pub cases: u64,
+    pub seconds: f64,
+    pub crashes: Vec<Crash>,
+    pub slowest_case_ms: f64,
+    /// The process's peak resident memory (`VmHWM`) at the end.
+    pub peak_rss_mb: Option<f64>,
+}
+
+/// Where crashing and hanging inputs are saved.
+pub fn crash_dir() -> PathBuf {
+    std::env::temp_dir().join("refnpr-fuzz-crashes")
+}
+
+/// Runs `target` on mutated seeds until a limit. Panics are caught and
+/// reported; a case over `case_seconds` saves its input and exits the
+/// process with status 3 (a hang cannot be interrupted from outside).
+pub fn run(target: &Target, limits: &Limits) -> Result<Report> {
+    if target.seeds.is_empty() {
+        bail!("fuzz target {} has no seed inputs", target.name);
+    }
+    let started = Instant::now();
+    let mut rng = ChaCha8Rng::seed_from_u64(limits.seed);
+    let current = Arc::new(Mutex::new(Vec::new()));
+    let case_started_ms = Arc::new(AtomicU64::new(u64::MAX));
+    let done = Arc::new(AtomicBool::new(false));
+    let watchdog = spawn_watchdog(&target.name, limits.case_seconds, started, &current, &case_started_ms, &done);
+    install_panic_hook();
+    let _fuzzing = FuzzingThread::start();
+    let (mut crashes, mut cases, mut slowest) = (Vec::new(), 0u64, Duration::ZERO);
+    while cases < limits.max_cases && started.elapsed().as_secs_f64() < limits.max_seconds {
+        let input = mutate(&target.seeds, &mut rng);
+        current.lock().unwrap().clone_from(&input);
+        let t = Instant::now();
+        case_started_ms.store(started.elapsed().as_millis() as u64, Ordering::SeqCst);
+        let outcome = catch_unwind(AssertUnwindSafe(|| (target.check)(&input)));
+        case_started_ms.store(u64::MAX, Ordering::SeqCst);
+        slowest = slowest.max(t.elapsed());
+        cases += 1;
+        if outcome.is_err() {
+            let message = LAST_PANIC.with(|p| p.borrow_mut().take()).unwrap_or_default();
+            match crashes.iter_mut().find(|c: &&mut Crash| c.message == message) {
+                Some(c) => c.count += 1,
+                None => {
+                    let input = save_input(&target.name, "crash", &input)?;
+                    crashes.push(Crash { message, count: 1, input });
+                }
+            }
+        }
+    }
+    done.store(true, Ordering::SeqCst);
+    watchdog.join().ok();
+    Ok(Report {
+        target: target.name.clone(),
+        cases,
+        seconds: started.elapsed().as_secs_f64(),
+        crashes,
+        slowest_case_ms: slowest.as_secs_f64() * 1e3,
+        peak_rss_mb: crate::util::memory::peak_rss_mb(),
+    })
+}
+
+fn spawn_watchdog(
+    name: &str,
+    case_seconds: f64,
+    started: Instant,
+    current: &Arc<Mutex<Vec<u8>>>,
+    case_started_ms: &Arc<AtomicU64>,
+    done: &Arc<AtomicBool>,
+) -> std::thread::JoinHandle<()> {
+    let (name, current, case_started_ms, done) =
+        (name.to_string(), current.clone(), case_started_ms.clone(), done.clone());
+    let limit_ms = (case_seconds * 1e3) as u64;
+    std::thread::spawn(move || {
+        while !done.load(Ordering::SeqCst) {
+            std::thread::sleep(Duration::from_millis(50));
+            let since = case_started_ms.load(Ordering::SeqCst);
+            let now = started.elapsed().as_millis() as u64;
+            if since != u64::MAX && now.saturating_sub(since) > limit_ms {
+                let input = current.lock().map(|i| i.clone()).unwrap_or_default();
+                let saved = save_input(&name, "hang", &input).map(|p| p.display().to_string());
+                // Library code reports through `Progress`; a hang has no
+                // caller left to report to, so it goes to stderr and exits.
+                #[allow(clippy::print_stderr)]
+                {
+                    eprintln!(
+                        "fuzz target {name}: a case ran over {case_seconds} s (a hang); input saved as {saved:?}"
+                    );
+                }
+                std::process::exit(3);
+            }
+        }
+    })
+}
+
+fn panic_text(panic: &(dyn std::any::Any + Send)) -> String {
+    panic
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| panic.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "a panic without a message".into())
+}
+
+fn save_input(target: &str, kind: &str, input: &[u8]) -> Result<PathBuf> {
+    let hash = input.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, &b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3));
+    let path = crash_dir().join(format!("{target}-{kind}-{hash:016x}.bin"));
+    files::write_bytes(&path, input)?;
+    Ok(path)
+}
+
+/// Text numbers a parser should refuse or survive.
+const NUMBERS: &[&str] = &[
+    "0",
+    "-0",
+    "1",
+    "-1",
+    "2",
+    "255",
+    "256",
+    "65535",
+    "65536",
+    "4294967295",
+    "4294967296",
+    "2147483648",
+    "9223372036854775807",
+    "18446744073709551616",
+    "1000000000000",
+    "1e308",
+    "-1e308",
+    "1e-320",
+    "NaN",
+    "inf",
+    "-inf",
+    "0.0",
+    "1.5",
+    "3.4e38",
+    "99999999999999999999999",
+];
+/// Binary values for length and count fields.
+const WORDS: &[u64] =
+    &[0, 1, 0xff, 0xffff, 0x7fff_ffff, 0xffff_ffff, 1 << 32, 1_000_000_000_000, u64::MAX / 2, u64::MAX];
+/// Bytes that are syntax in the formats we read.
+const BYTES: &[u8] = b"\0\x01\x7f\x80\xff0-.,:;[]{}()\"'=\n #e";
+
+/// One mutated input: a seed with 1 to 8 mutations.
+fn mutate(seeds: &[Vec<u8>], rng: &mut ChaCha8Rng) -> Vec<u8> {
+    let mut input = seeds[rng.random_range(0..seeds.len())].clone();
+    let n = 1usize << rng.random_range(0..4);
+    for _ in 0..n {
+        mutate_once(&mut input, seeds, rng);
+    }
+    input
+}
+
+fn mutate_once(input: &mut Vec<u8>, seeds: &[Vec<u8>], rng: &mut ChaCha8Rng) {
+    let len = input.len();
+    let pos = |rng: &mut ChaCha8Rng| if len == 0 { 0 } else { rng.random_range(0..len) };
+    match rng.random_range(0..9) {
+        0 if len > 0 => {
+            let i = pos(rng);
+            input[i] ^= 1 << rng.random_range(0..8);
+        }
+        1 if len > 0 => {
+            let i = pos(rng);
+            input[i] = BYTES[rng.random_range(0..BYTES.len())];
+        }
+        2 if len > 0 => {
+            let i = pos(rng);
+            let n = rng.random_range(1..=16).min(len - i);
+            input.drain(i..i + n);
+        }
+        3 => {
+            let i = pos(rng);
+            let bytes: Vec<u8> = (0..rng.random_range(1..=16)).map(|_| rng.random()).collect();
+            input.splice(i..i, bytes);
+        }
+        4 if len > 0 => {
+            let (i, j) = (pos(rng), pos(rng));
+            let n = rng.random_range(1..=64).min(len - i);
+            let piece = input[i..i + n].to_vec();
+            input.splice(j..j, piece);
+        }
+        5 if len > 0 => input.truncate(pos(rng)),
+        6 => replace_number(input, rng),
+        7 => {
+            let other = &seeds[rng.random_range(0..seeds.len())];
+            if !other.is_empty() {
+                let i = rng.random_range(0..other.len());
+                let n = rng.random_range(1..=64).min(other.len() - i);
+                let at = pos(rng);
+                input.splice(at..at, other[i..i + n].iter().copied());
+            }
+        }
+        _ if len >= 8 => {
+            let w = WORDS[rng.random_range(0..WORDS.len())];
+            let width = if rng.random() { 8 } else { 4 };
+            let i = rng.random_range(0..=len - width);
+            input[i..i + width].copy_from_slice(&w.to_le_bytes()[..width]);
+        }
+        _ => input.push(rng.random()),
+    }
+}
+
+/// Replaces a run of number characters (digits, '.', '-', 'e') with an
+/// interesting number; appends one where the input has none.
+fn replace_number(input: &mut Vec<u8>, rng: &mut ChaCha8Rng) {
+    let is_num = |b: u8| b.is_ascii_digit() || b == b'.' || b == b'-';
+    let starts: Vec<usize> =
+        (0..input.len()).filter(|&i| is_num(input[i]) && (i == 0 || !is_num(input[i - 1]))).collect();
+    let new = NUMBERS[rng.random_range(0..NUMBERS.len())].as_bytes();
+    match starts.len() {
+        0 => input.extend_from_slice(new),
+        n => {
+            let s = starts[rng.random_range(0..n)];
+            let mut e = s;
+            while e < input.len() && (is_num(input[e]) || input[e] == b'e') {
+                e += 1;
+            }
+            input.splice(s..e, new.iter().copied());
+        }
+    }
+}
+
+/// The names of the library's fuzz targets.
+pub const TARGETS: &[&str] = &[
+    "npy",
+    "transforms",
+    "reference_toml",
+    "data_config",
+    "train_config",
+    "stylize_config",
+    "checkpoint",
+    "registration",
+    "image",
+];
+
+/// Builds target `name`. `scratch` is a private folder for files the
+/// parsers read; `shared_data` (`../shared/data`), when present, adds real
+/// files to the seeds.
+pub fn target(name: &str, scratch: &Path, shared_data: Option<&Path>) -> Result<Target> {
+    files::create_dir(scratch)?;
+    let real = |rel: &str| shared_data.map(|d| d.join(rel)).filter(|p| p.exists()).map(std::fs::read).transpose();
+    let (seeds, check): (Vec<Vec<u8>>, Check) = match name {
+        "npy" => {
+            let mut seeds =
+                vec![npy_bytes(scratch, &[2, 3])?, npy_bytes(scratch, &[4])?, npy_bytes(scratch, &[1, 17])?];
+            seeds.extend(real("nerf_llff_data/fern/poses_bounds.npy")?);
+            (seeds, Box::new(|b| drop(npy::parse(b))))
+        }
+        "transforms" => {
+            let scene = tiny_scene(scratch)?;
+            let mut seeds = vec![std::fs::read(scene.join("transforms_train.json"))?];
+            seeds.extend(real("nerf_synthetic/lego/transforms_train.json")?.map(|b| b[..b.len().min(4096)].to_vec()));
+            let file = scene.join("transforms_train.json");
+            (seeds, Box::new(move |b| parse_file(&file, b, || data::load(&scene, &Default::default()).map(drop))))
+        }
+        "reference_toml" => {
+            let (dir, dataset) = (scratch.to_path_buf(), data::load(&tiny_scene(scratch)?, &Default::default())?);
+            let seeds = [
+                "[[reference]]\nstyle = \"style.png\"\nview = \"train:1\"\n",
+                "color_pre = false\npath_frames = 60\nscene_name = \"tiny\"\n[[reference]]\nstyle = \"a.png\"\nview = \"path:12\"\n[[reference]]\nstyle = \"b.png\"\nview = \"test:0\"\n",
+                "[[reference]]\nstyle = \"s.png\"\nc2w = [[1.0,0.0,0.0,0.0],[0.0,1.0,0.0,0.0],[0.0,0.0,1.0,3.0],[0.0,0.0,0.0,1.0]]\nintrinsics = { width = 8, height = 8, fx = 10.0, fy = 10.0, cx = 4.0, cy = 4.0 }\n",
+            ];
+            let check: Check = Box::new(move |b| {
+                let text = String::from_utf8_lossy(b);
+                if let Ok(case) = ReferenceCase::from_toml(&dir, &text) {
+                    drop(case.cameras(&dataset));
+                }
+            });
+            (seeds.iter().map(|s| s.as_bytes().to_vec()).collect(), check)
+        }
+        "data_config" => {
+            let (dir, dataset) = (scratch.to_path_buf(), data::load(&tiny_scene(scratch)?, &Default::default())?);
+            let mut seeds: Vec<Vec<u8>> = [
+                r#"{"style_img": "style.png", "tmpl_idx_train": 1, "tmpl_idx_test": null, "color_pre": true, "scene_name": "tiny"}"#,
+                r#"{"style_img": ["a.png", "b.png"], "tmpl_idx_train": null, "tmpl_idx_test": [3, 40], "style_name": "x"}"#,
+            ]
+            .iter()
+            .map(|s| s.as_bytes().to_vec())
+            .collect();
+            seeds.extend(real("ref_case/flower_colorful/data_config.json")?);
+            let check: Check = Box::new(move |b| {
+                if let Ok(case) = ReferenceCase::from_json(&dir, &String::from_utf8_lossy(b)) {
+                    drop(case.cameras(&dataset));
+                }
+            });
+            (seeds, check)
+        }
+        "train_config" => {
+            let seeds = [
+                include_str!("../../configs/blender.toml"),
+                include_str!("../../configs/llff.toml"),
+                include_str!("../../configs/demo.toml"),
+            ];
+            let check: Check = Box::new(|b| {
+                let base = TrainConfig::for_kind(DatasetKind::Blender);
+                drop(TrainConfig::from_toml_str(&String::from_utf8_lossy(b), &base, "fuzz.toml"));
+            });
+            (seeds.iter().map(|s| s.as_bytes().to_vec()).collect(), check)
+        }
+        "stylize_config" => {
+            let seeds = [include_str!("../../configs/stylize.toml"), include_str!("../../configs/demo_stylize.toml")];
+            let check: Check =
+                Box::new(|b| drop(StylizeConfig::from_toml_str(&String::from_utf8_lossy(b), "fuzz.toml")));
+            (seeds.iter().map(|s| s.as_bytes().to_vec()).collect(), check)
+        }
+        "checkpoint" => {
+            let file = scratch.join(checkpoint::CHECKPOINT_FILE);
+            write_tiny_checkpoint(&file)?;
+            let seeds = vec![std::fs::read(&file)?];
+            let check: Check = Box::new(move |b| {
+                parse_file(&file, b, || checkpoint::load(&file, &BackendKind::Flex.device()).map(drop));
+            });
+            (seeds, check)
+        }
+        "registration" => {
+            let file = scratch.join("registration.bin");
+            tiny_registration().save(&file)?;
+            let seeds = vec![std::fs::read(&file)?];
+            (seeds, Box::new(move |b| parse_file(&file, b, || RegistrationFile::load(&file).map(drop))))
+        }
+        "image" => {
+            let seeds = image_seeds()?;
+            let file = scratch.join("style.png");
+            let check: Check = Box::new(move |b| {
+                parse_file(&file, b, || {
+                    read_style(&file, 8, 8, [1.0; 3])?;
+                    data::read_rgb(&file, [1.0; 3], 2).map(drop)
+                })
+            });
+            (seeds, check)
+        }
+        other => bail!("no fuzz target '{other}' (targets: {}, cli)", TARGETS.join(", ")),
+    };
+    Ok(Target { name: name.to_string(), seeds, check })
+}
+
+/// Writes `bytes` to `file`, then runs the parser that reads it.
+fn parse_file(file: &Path, bytes: &[u8], parse: impl FnOnce() -> Result<()>) {
+    if std::fs::write(file, bytes).is_ok() {
+        drop(parse());
+    }
+}
+
+fn npy_bytes(scratch: &Path, shape: &[usize]) -> Result<Vec<u8>> {
+    let path = scratch.join("seed.npy");
+    let data: Vec<f32> = (0..shape.iter().product::<usize>()).map(|i| i as f32 * 0.5).collect();
+    npy::write_f32(&path, shape, &data)?;
+    std::fs::read(&path).with_context(|| format!("reading {}", path.display()))
+}
+
+/// The procedural scene at 8x8 pixels, 2 training views: a real Blender
+/// folder that loads in milliseconds.
+fn tiny_scene(scratch: &Path) -> Result<PathBuf> {
+    let dir = scratch.join("scene");
+    if !dir.join("transforms_train.json").exists() {
+        let opts = procedural::SceneOptions { seed: 1, size: 8, num_train: 2, num_val: 1, num_test: 1 };
+        procedural::write_scene(&dir, &opts)?;
+    }
+    Ok(dir)
+}
+
+fn tiny_camera() -> Camera {
+    let k = Intrinsics { width: 8, height: 8, fx: 10.0, fy: 10.0, cx: 4.0, cy: 4.0 };
+    Camera::new(k, Mat4::from_translation(Vec3::new(0.0, 0.0, 3.0)))
+}
+
+fn write_tiny_checkpoint(file: &Path) -> Result<()> {
+    let geometry = GridGeometry { res: [4, 4, 4], bbox_min: Vec3::splat(-1.0), bbox_max: Vec3::splat(1.0) };
+    let coords = vec![0, 5, 21, 63];
+    let density = vec![0.5, 1.0, 2.0, 0.0];
+    let sh: Vec<f32> = (0..coords.len() * 12).map(|i| i as f32 * 0.1).collect();
+    let device = BackendKind::Flex.device();
+    let grid = RadianceGrid::from_rows(geometry, 1, coords, density, sh, &device);
+    let meta = CheckpointMeta {
+        step: 3,
+        geometry,
+        sh_degree: 1,
+        ndc: None,
+        kind: DatasetKind::Blender,
+        background: [1.0; 3],
+        near_far: None,
+        data_dir: PathBuf::from("scene"),
+        config: TrainConfig::for_kind(DatasetKind::Blender),
+        train_seconds: 1.0,
+    };
+    let zeros = |cols: usize| crate::util::tensor::floats(vec![0.0; 4 * cols], [4, cols], &device);
+    checkpoint::save(file, &meta, &grid, &zeros(1), &zeros(12))
+}
+
+fn tiny_registration() -> RegistrationFile {
+    let registration = ViewRegistration {
+        width: 8,
+        height: 8,
+        pixels: vec![1, 9, 40],
+        colours: vec![[0.1, 0.2, 0.3]; 3],
+        reference: vec![0; 3],
+        hits: 50,
+    };
+    RegistrationFile {
+        photo: PhotoRun { file: PathBuf::from("photo/checkpoint.bin"), fingerprint: 7 },
+        params: RegisterParams::default(),
+        references: vec![ReferencePixels { camera: tiny_camera(), colours: vec![[0.5; 3]; 64], hits: vec![true; 64] }],
+        views: vec![NamedRegistration { name: "r_0".into(), registration }],
+    }
+}
+
+/// PNGs of every layout a user's tool may write: RGB, RGBA, grey, grey +
+/// alpha, 16-bit, odd sizes; 8x8 (the reference size) and others.
+fn image_seeds() -> Result<Vec<Vec<u8>>> {
+    use image::{DynamicImage, ImageBuffer, ImageFormat};
+    let rgb = ImageBuffer::from_fn(8, 8, |x, y| image::Rgb([(x * 30) as u8, (y * 30) as u8, 7]));
+    let images = [
+        DynamicImage::ImageRgb8(rgb.clone()),
+        DynamicImage::ImageRgba8(DynamicImage::ImageRgb8(rgb.clone()).to_rgba8()),
+        DynamicImage::ImageLuma8(DynamicImage::ImageRgb8(rgb.clone()).to_luma8()),
+        DynamicImage::ImageLumaA8(DynamicImage::ImageRgb8(rgb.clone()).to_luma_alpha8()),
+        DynamicImage::ImageRgb16(DynamicImage::ImageRgb8(rgb.clone()).to_rgb16()),
+        DynamicImage::ImageRgb8(image::imageops::resize(&rgb, 5, 3, image::imageops::FilterType::Nearest)),
+        DynamicImage::ImageRgba16(DynamicImage::ImageRgb8(rgb).to_rgba16()),
+    ];
+    images
+        .iter()
+        .map(|img| {
+            let mut bytes = std::io::Cursor::new(Vec::new());
+            img.write_to(&mut bytes, ImageFormat::Png).context("encoding a seed PNG")?;
+            Ok(bytes.into_inner())
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mutations_are_deterministic_under_a_seed_and_vary() {
+        let seeds = vec![b"{\"a\": [1, 2.5, -3]}".to_vec()];
+        let run = |s| {
+            let mut rng = ChaCha8Rng::seed_from_u64(s);
+            (0..50).map(|_| mutate(&seeds, &mut rng)).collect::<Vec<_>>()
+        };
+        assert_eq!(run(1), run(1));
+        let distinct: std::collections::HashSet<_> = run(1).into_iter().collect();
+        assert!(distinct.len() > 40, "{} distinct inputs of 50", distinct.len());
+    }
+}

@@ -1,0 +1,75 @@
+//! A short run of every fuzz target (`refnpr fuzz`; long runs:
+//! `scripts/fuzz.sh TARGET SECONDS`): mutated real files fed to every parser
+//! of outside input, none may panic. Plus the inputs the fuzzer found
+//! panicking before they were fixed, kept as regressions.
+
+mod common;
+
+use common::TempDir;
+use refnpr::tools::fuzz::{self, Limits};
+
+fn shared_data() -> Option<std::path::PathBuf> {
+    let d = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data")).to_path_buf();
+    d.is_dir().then_some(d)
+}
+
+/// `cases` mutated inputs of target `name`: no panic, none slower than 5 s.
+fn fuzz_briefly(name: &str, cases: u64) {
+    let t = TempDir::new(&format!("fuzz-{name}"));
+    let target = fuzz::target(name, t.path(), shared_data().as_deref()).unwrap();
+    let limits = Limits { max_cases: cases, max_seconds: 120.0, case_seconds: 5.0, seed: 7 };
+    let report = fuzz::run(&target, &limits).unwrap();
+    assert!(report.crashes.is_empty(), "{name}: {:#?}", report.crashes);
+    // The limit in cases, not the one in time, ended the run: the figure is what it says.
+    assert_eq!(report.cases, cases, "{name}: ran out of time after {} cases", report.cases);
+}
+
+#[test]
+fn fuzz_text_parsers() {
+    for name in ["npy", "reference_toml", "data_config", "train_config", "stylize_config"] {
+        fuzz_briefly(name, 20_000);
+    }
+}
+
+#[test]
+fn fuzz_file_parsers() {
+    for name in ["checkpoint", "registration", "image", "transforms"] {
+        fuzz_briefly(name, 2000);
+    }
+}
+
+#[test]
+fn fuzz_the_command_line() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_refnpr"))
+        .args(["fuzz", "cli", "--cases", "5000", "--seed", "7"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(text.contains("\"cases\": 5000") && text.contains("\"crashes\": []"), "{text}");
+}
+
+/// Inputs the fuzzer found panicking (fixed since): each is now a clear error.
+#[test]
+fn inputs_the_fuzzer_found_are_refused() {
+    // An .npy header whose shape multiplies past usize: refused before any allocation.
+    let header = "{'descr': '<f4', 'fortran_order': False, 'shape': (4294967296, 4294967296, 17), }";
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    npy.extend_from_slice(header.as_bytes());
+    let e = format!("{:#}", refnpr::util::npy::parse(&npy).err().unwrap());
+    assert!(e.contains("truncated"), "{e}");
+    // ... and one whose ')' comes before its '('.
+    let header = "{'descr': '<f4', 'fortran_order': False, 'shape': ), (2, }";
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    npy.extend_from_slice(header.as_bytes());
+    assert!(refnpr::util::npy::parse(&npy).is_err());
+    // A reference case asking for a render path of 2^31 frames (it hung, building them).
+    let text = "path_frames = 2147483648\n[[reference]]\nstyle = \"s.png\"\nview = \"path:1\"\n";
+    let e = format!(
+        "{:#}",
+        refnpr::reference::case::ReferenceCase::from_toml(std::path::Path::new("."), text).unwrap_err()
+    );
+    assert!(e.contains("path_frames must be between 1 and"), "{e}");
+}
