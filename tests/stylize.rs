@@ -494,6 +494,7 @@ fn job(
         data: None,
         registration: None,
         render_test: true,
+        resume: false,
     }
 }
 
@@ -1018,4 +1019,73 @@ fn robustness_restylizes_with_the_runs_method() {
             assert!(robustness > photoreal + 1.0, "restylized {robustness:.2} dB vs photoreal {photoreal:.2} dB");
         }
     }
+}
+
+/// `refnpr stylize` killed with SIGKILL in the smooth update, then run again
+/// with `--resume`: the field and the loss curve are bit for bit those of an
+/// uninterrupted run (on flex: the suite runs this on flex only).
+#[test]
+fn a_killed_stylization_resumes_to_the_same_field() {
+    let t = TempDir::new("stylize-resume");
+    let photo = tiny_photo_run(t.path(), 60, 6);
+    let case = write_case(t.path(), &t.path().join("scene"), 0, "");
+    let config_file = t.path().join("style.toml");
+    std::fs::write(
+        &config_file,
+        "[schedule]\nimage_epochs = 2\nsmooth_fraction = 0.5\nray_epochs = 1.0\ncheckpoint_every = 1\n\
+         [loss]\nreference_rays = 4096\nregistered_rays = 4096\n",
+    )
+    .unwrap();
+    let config = StylizeConfig::from_file(&config_file).unwrap();
+    let whole = t.path().join("whole");
+    run_stylize(
+        &StylizeJob { render_test: false, ..job(&photo, &case, &whole, config, Method::RefNpr) },
+        &refnpr::Quiet,
+    )
+    .unwrap();
+
+    let killed = t.path().join("killed");
+    let command = |resume: bool| {
+        let mut c = std::process::Command::new(env!("CARGO_BIN_EXE_refnpr"));
+        c.args(["stylize", "--no-render", "--backend", "flex", "--photo"]).arg(&photo);
+        c.arg("--reference").arg(&case).arg("--out").arg(&killed).arg("--config").arg(&config_file);
+        if resume {
+            c.arg("--resume");
+        }
+        c.stdout(std::process::Stdio::null()).stderr(std::process::Stdio::null());
+        c
+    };
+    // 12 image steps, the smooth update from the 7th: killed once 8 are done.
+    let mut child = command(false).spawn().unwrap();
+    let resume_file = refnpr::stylize::resume::path(&killed);
+    let started = std::time::Instant::now();
+    let killed_at = loop {
+        if let Ok(s) = refnpr::stylize::resume::ResumeState::read(&resume_file)
+            && s.image_steps >= 8
+        {
+            child.kill().unwrap();
+            break s.image_steps;
+        }
+        assert!(child.try_wait().unwrap().is_none(), "the run ended before it could be killed");
+        assert!(started.elapsed().as_secs() < 600, "no resume point after 10 minutes");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    };
+    child.wait().unwrap();
+    assert!(!killed.join("checkpoint.bin").exists(), "killed after step {killed_at}, yet finished");
+    let status = command(true).status().unwrap();
+    assert!(status.success());
+    assert!(!resume_file.exists(), "a finished run leaves no resume file");
+
+    let d = common::device();
+    let a = checkpoint::load_with(&whole, &d, false).unwrap();
+    let b = checkpoint::load_with(&killed, &d, false).unwrap();
+    let (a_sh, b_sh) = (to_vec(a.grid.sh.clone()), to_vec(b.grid.sh.clone()));
+    let same = a_sh.iter().zip(&b_sh).all(|(x, y)| x.to_bits() == y.to_bits());
+    assert!(same && a_sh.len() == b_sh.len(), "killed after image step {killed_at}: the fields differ");
+    let curve = |dir: &std::path::Path| {
+        let j: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("stylize.json")).unwrap()).unwrap();
+        j["curve"].clone()
+    };
+    assert_eq!(curve(&whole), curve(&killed));
 }

@@ -150,6 +150,10 @@ enum Command {
         /// Skip rendering the test views of the result.
         #[arg(long)]
         no_render: bool,
+        /// Continue a killed run from OUT/resume.bin (written after the refit and every
+        /// schedule.checkpoint_every image steps); the same command otherwise.
+        #[arg(long)]
+        resume: bool,
         /// A `refnpr register` output folder (or its registration.bin) to use instead of registering again.
         #[arg(long)]
         registration: Option<PathBuf>,
@@ -584,8 +588,19 @@ fn run_reference(ckpt: &Path, view: &str, out: &Path, data: Option<PathBuf>) -> 
 /// `refnpr stylize`: the config file (or the defaults), then the flags the
 /// user gave (`--epochs`, and any R³ flag over the file's `[register]`).
 fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Progress) -> Result<()> {
-    let Command::Stylize { inputs, out, config, method, style, epochs, backend, no_render, registration, register } =
-        command
+    let Command::Stylize {
+        inputs,
+        out,
+        config,
+        method,
+        style,
+        epochs,
+        backend,
+        no_render,
+        resume,
+        registration,
+        register,
+    } = command
     else {
         unreachable!("called for the stylize subcommand")
     };
@@ -602,7 +617,7 @@ fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Pr
     let render_test = !no_render;
     let backend = backend_or_env(backend, progress)?;
     let PhotoAndCase { photo, reference: case, data } = inputs;
-    let job = StylizeJob { photo, case, out, config, method, backend, style, data, registration, render_test };
+    let job = StylizeJob { photo, case, out, config, method, backend, style, data, registration, render_test, resume };
     let r = run_stylize(&job, progress)?;
     let phases: Vec<String> = r.seconds.iter().map(|(k, v)| format!("{k} {v:.1}s")).collect();
     println!("stylized ({}) in {:.1} s: {}", r.method, r.total_seconds, phases.join(", "));

@@ -462,6 +462,7 @@ fn robustness(
             message: format!("restylizing from path frame {frame}"),
         });
         let restyle = StylizeJob {
+            resume: false,
             photo: photo.clone(),
             case: case_dir,
             out: out.clone(),

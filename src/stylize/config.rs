@@ -80,6 +80,8 @@ pub struct ScheduleConfig {
     pub lr_decay_steps: usize,
     pub rmsprop_beta: f32,
     pub eps: f32,
+    /// Image steps between two writes of `OUT/resume.bin` (0: only after the refit).
+    pub checkpoint_every: usize,
 }
 
 impl Default for ScheduleConfig {
@@ -96,6 +98,7 @@ impl Default for ScheduleConfig {
             lr_decay_steps: 250_000,
             rmsprop_beta: 0.95,
             eps: 1e-8,
+            checkpoint_every: 50,
         }
     }
 }

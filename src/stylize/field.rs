@@ -141,6 +141,16 @@ impl StyleField {
             self.grid.sh.clone().matmul(floats(transposed, [3, 3], &device)) + floats(shift, [1, 3], &device);
     }
 
+    /// The RMSprop running averages `[rows, 3]`.
+    pub fn rms(&self) -> Tensor<2> {
+        self.rms.clone()
+    }
+
+    /// Restores the running averages (a resumed run).
+    pub fn set_rms(&mut self, rms: Tensor<2>) {
+        self.rms = rms;
+    }
+
     pub fn reset_optimiser(&mut self) {
         self.rms = Tensor::zeros([self.grid.num_rows(), 3], &self.grid.device());
     }

@@ -30,6 +30,7 @@ pub mod colour_transfer;
 pub mod config;
 pub mod field;
 pub mod losses;
+pub mod resume;
 pub mod run;
 pub mod styles;
 pub mod stylizer;
@@ -79,10 +80,12 @@ pub struct StylizeJob {
     pub registration: Option<PathBuf>,
     /// Render the test views of the result into `out/test`.
     pub render_test: bool,
+    /// Continue a killed run from `out/resume.bin` when it is there.
+    pub resume: bool,
 }
 
 /// Which phase a logged step belongs to.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum StepKind {
     Refit,
@@ -91,7 +94,7 @@ pub enum StepKind {
 }
 
 /// One logged optimisation step.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct CurvePoint {
     pub phase: StepKind,
     pub step: usize,

@@ -18,6 +18,7 @@ use crate::reference::registration::{PhotoRun, RegistrationFile, lift_references
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
+use crate::stylize::resume::{self, ResumeState};
 use crate::stylize::styles::{arf_colour_transfer, read_styles, style_colour_stats};
 use crate::stylize::stylizer::Stylizer;
 use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
@@ -45,6 +46,10 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     }
     let image_size = preflight(job, &ck, &dataset)?;
     let _lock = OutputLock::acquire(&job.out)?;
+    let resumed = match job.resume {
+        true => ResumeState::load(job)?,
+        false => None,
+    };
     let mut seconds = BTreeMap::new();
     let mut moved = BTreeMap::new();
     let mut warnings = WarningLog::new(progress);
@@ -67,11 +72,24 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     if let (true, Some(tf)) = (job.method == Method::Arf && cfg.arf.transfer_grid, colour_transfer) {
         st.field.apply_colour_transfer(&tf);
     }
-    let m = transfer::measure(|| st.refit(progress));
-    m.value?;
-    seconds.insert("refit".to_string(), m.seconds);
-    let refit_steps = st.curve.iter().filter(|p| p.phase == StepKind::Refit).count();
-    moved.insert("refit".to_string(), PhaseTransfers::new(m.moved, refit_steps));
+    match &resumed {
+        None => {
+            let m = transfer::measure(|| st.refit(progress));
+            m.value?;
+            seconds.insert("refit".to_string(), m.seconds);
+            let refit_steps = st.curve.iter().filter(|p| p.phase == StepKind::Refit).count();
+            moved.insert("refit".to_string(), PhaseTransfers::new(m.moved, refit_steps));
+            st.finish_refit()?;
+        }
+        Some(state) => {
+            progress.info(format!(
+                "resuming {} after image step {} (the refit is done)",
+                resume::path(&job.out).display(),
+                state.image_steps
+            ));
+            st.start_from_refit(state)?;
+        }
+    }
 
     let colour = job.method == Method::RefNpr && cfg.ablation.use_colour_loss && case.color_pre;
     let m = transfer::measure(|| st.guidance(&styles, keeps_content(job), colour, progress));
@@ -86,7 +104,11 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         files::write_json(&job.out.join("colour_targets.json"), &records)?;
     }
 
-    let epochs = st.image_epochs(&styles, guidance, progress)?;
+    let start = resumed.as_ref().map_or(0, |s| s.image_steps);
+    if let Some(state) = resumed {
+        st.restore(state);
+    }
+    let epochs = st.image_epochs(&styles, guidance, start, progress)?;
     seconds.insert("image_epochs".to_string(), epochs.image_seconds);
     seconds.insert("smooth_update".to_string(), epochs.smooth_seconds);
     moved.insert("image_epochs".to_string(), epochs.image_steps);
@@ -131,6 +153,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         warnings: warnings.into_vec(),
     };
     files::write_json(&job.out.join("stylize.json"), &report)?;
+    ResumeState::remove(&job.out);
     if job.render_test && !dataset.test.is_empty() {
         let style_ck = checkpoint::load_with(&job.out, &job.backend.device(), false)?;
         let cams: Vec<Camera> = dataset.test.iter().map(|v| v.camera).collect();

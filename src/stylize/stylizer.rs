@@ -31,6 +31,7 @@ use crate::stylize::field::{
     render_gathered,
 };
 use crate::stylize::losses;
+use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::styles::{colour_stats, is_background};
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
 use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
@@ -197,6 +198,12 @@ pub struct Stylizer<'a> {
     pub curve: Vec<CurvePoint>,
     /// Optimiser steps taken so far, over all phases (the shared rate schedule).
     optimiser_steps: usize,
+    /// The field after the refit and when the smooth update began: the
+    /// guides were built from them, so a resumed run rebuilds them from these.
+    refit_sh: Vec<f32>,
+    smooth_sh: Option<Vec<f32>>,
+    /// The image step of the last `resume.bin` written by this run.
+    saved_at: Option<usize>,
 }
 
 /// What the image epochs are guided by: the TCM template (Ref-NPR), the
@@ -252,6 +259,9 @@ impl<'a> Stylizer<'a> {
             colour_transfer,
             curve: Vec::new(),
             optimiser_steps: 0,
+            refit_sh: Vec::new(),
+            smooth_sh: None,
+            saved_at: None,
         };
         for r in 0..st.registration.references.len() {
             let samples = st.march_camera(&st.registration.references[r].camera);
@@ -291,10 +301,12 @@ impl<'a> Stylizer<'a> {
     /// order; the last `smooth_fraction` of them (Ref-NPR) are the smooth
     /// content update, where the stylized field becomes the content
     /// generator. Returns the seconds of the image epochs and of the smooth update.
+    /// A resumed run passes the image steps already done as `start`.
     pub fn image_epochs(
         &mut self,
         styles: &[Image],
         mut guidance: Guidance,
+        start: usize,
         progress: &dyn Progress,
     ) -> Result<EpochCosts> {
         let s = &self.cfg.schedule;
@@ -306,7 +318,7 @@ impl<'a> Stylizer<'a> {
             0
         };
         let smooth_start = s.image_epochs - smooth_epochs.min(s.image_epochs);
-        if !self.cfg.optim.keep_state {
+        if !self.cfg.optim.keep_state && start == 0 {
             self.field.reset_optimiser();
         }
         let started = std::time::Instant::now();
@@ -314,22 +326,38 @@ impl<'a> Stylizer<'a> {
         // Per-step traffic, the smooth update's guides (content renders) apart.
         let (mut image_moved, mut smooth_moved, mut guides_moved) =
             (Transfers::default(), Transfers::default(), Transfers::default());
-        progress.event(Event::Start { phase: Phase::ImageEpochs, done: 0, total: total_steps });
+        progress.event(Event::Start { phase: Phase::ImageEpochs, done: start, total: total_steps });
         let mut step = 0;
         for epoch in 0..s.image_epochs {
             let smooth = epoch >= smooth_start;
             if smooth && smooth_started.is_none() {
                 smooth_started = Some(std::time::Instant::now());
+                // Resumed past this point: the guides come from the field as it was here.
+                let now = match (&self.smooth_sh, step < start) {
+                    (Some(then), true) => {
+                        let then = self.sh_tensor(then);
+                        Some(std::mem::replace(&mut self.field.grid.sh, then))
+                    }
+                    _ => None,
+                };
                 let m = transfer::measure(|| -> Result<_> {
                     let t = self.template(styles)?;
                     Ok((self.guides(Some(&t), false, false, progress)?.0, t))
                 });
                 let (guides, t) = m.value?;
                 (guidance.guides, guidance.template, guides_moved) = (guides, Some(t), m.moved);
+                match now {
+                    Some(now) => self.field.grid.sh = now,
+                    None => self.smooth_sh = Some(to_vec(self.field.grid.sh.clone())),
+                }
             }
             let mut order: Vec<usize> = (0..views).collect();
             order.shuffle(&mut epoch_rng(self.cfg.seed, epoch));
             for v in order {
+                if step < start {
+                    step += 1;
+                    continue;
+                }
                 let m = transfer::measure(|| self.image_step(v, step, total_steps, &guidance, smooth));
                 let (point, moved) = (m.value?, m.moved);
                 diverged::check_loss(point.total, Phase::ImageEpochs, step + 1, &self.nothing_written())?;
@@ -351,6 +379,10 @@ impl<'a> Stylizer<'a> {
                 progress.event(Event::Step { phase: Phase::ImageEpochs, done: step + 1, total: total_steps, message });
                 self.curve.push(point);
                 step += 1;
+                let every = self.cfg.schedule.checkpoint_every;
+                if every > 0 && step.is_multiple_of(every) && step < total_steps {
+                    self.save_resume_point(step)?;
+                }
             }
         }
         let smooth_secs = smooth_started.map(|t| t.elapsed().as_secs_f64()).unwrap_or(0.0);
@@ -363,10 +395,75 @@ impl<'a> Stylizer<'a> {
         })
     }
 
-    /// What a diverged run leaves: this run's checkpoint is written only at
-    /// its end, so nothing of it.
+    /// What a diverged run leaves: its checkpoint is written only at its
+    /// end; its last resume point, if any, is good.
     fn nothing_written(&self) -> String {
-        format!("nothing was written to {}", self.job.out.join(checkpoint::CHECKPOINT_FILE).display())
+        let out = &self.job.out;
+        match self.saved_at {
+            Some(k) => format!(
+                "the last resume point, {} (image step {k}), is kept: `--resume` continues from it",
+                resume::path(out).display()
+            ),
+            None => format!("nothing was written to {}", out.join(checkpoint::CHECKPOINT_FILE).display()),
+        }
+    }
+
+    /// The refit is over: its field is kept (the guides are built from it)
+    /// and the first resume point written.
+    pub fn finish_refit(&mut self) -> Result<()> {
+        self.refit_sh = to_vec(self.field.grid.sh.clone());
+        self.save_resume_point(0)
+    }
+
+    /// Writes `OUT/resume.bin` after `image_steps` image steps; refuses a
+    /// field that is not finite (a resume point must be good).
+    fn save_resume_point(&mut self, image_steps: usize) -> Result<()> {
+        let state = ResumeState {
+            job: JobKey::of(self.job),
+            refit_sh: self.refit_sh.clone(),
+            smooth_sh: self.smooth_sh.clone(),
+            sh: to_vec(self.field.grid.sh.clone()),
+            rms: to_vec(self.field.rms()),
+            image_steps,
+            optimiser_steps: self.optimiser_steps,
+            curve: self.curve.clone(),
+        };
+        if let Some(what) = diverged::first_non_finite(&[("SH colour", &state.sh), ("RMSprop state", &state.rms)]) {
+            bail!(
+                "the field's {what} holds NaN or infinite values after image step {image_steps}; {}",
+                self.nothing_written()
+            );
+        }
+        state.save(&self.job.out)?;
+        self.saved_at = Some(image_steps);
+        Ok(())
+    }
+
+    /// A resumed run: the field as the refit left it (to rebuild the first
+    /// guides from).
+    pub fn start_from_refit(&mut self, state: &ResumeState) -> Result<()> {
+        let rows = self.field.grid.num_rows();
+        if state.refit_sh.len() != rows * 3 || state.sh.len() != rows * 3 || state.rms.len() != rows * 3 {
+            bail!("{} does not fit this photoreal run's grid", resume::path(&self.job.out).display());
+        }
+        self.refit_sh = state.refit_sh.clone();
+        self.field.grid.sh = self.sh_tensor(&state.refit_sh);
+        Ok(())
+    }
+
+    /// A resumed run, once its first guides are built: the field, optimiser
+    /// state, step count and curve as the killed run left them.
+    pub fn restore(&mut self, state: ResumeState) {
+        self.field.grid.sh = self.sh_tensor(&state.sh);
+        self.field.set_rms(self.sh_tensor(&state.rms));
+        self.smooth_sh = state.smooth_sh;
+        self.optimiser_steps = state.optimiser_steps;
+        self.curve = state.curve;
+        self.saved_at = Some(state.image_steps);
+    }
+
+    fn sh_tensor(&self, values: &[f32]) -> Tensor<2> {
+        floats(values.to_vec(), [values.len() / 3, 3], &self.field.grid.device())
     }
 
     /// One image step on training view `v`: the image losses by deferred

@@ -150,6 +150,7 @@ fn stylize_demo(
         stylized.display()
     ));
     let job = StylizeJob {
+        resume: false,
         photo: photo.to_path_buf(),
         case: case.to_path_buf(),
         out: stylized.to_path_buf(),

@@ -1,0 +1,103 @@
+//! Resuming a stylization: `OUT/resume.bin` holds what a killed run cannot
+//! recompute exactly. Everything else (the registration, the style side,
+//! the frozen sample lists, the per-step random draws) is deterministic
+//! and rebuilt; the guides are rebuilt from the fields they were built from
+//! (the refit's, and the smooth update's first), so a resumed run ends with
+//! the same field, bit for bit on the CPU backends, as an uninterrupted one.
+//! Written atomically after the refit and every `schedule.checkpoint_every`
+//! image steps; removed when the run finishes.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Result, bail};
+use serde::{Deserialize, Serialize};
+
+use crate::stylize::{CurvePoint, Method, StylizeJob};
+use crate::util::files;
+
+pub const RESUME_FILE: &str = "resume.bin";
+const MAGIC: &[u8; 8] = b"REFNPRS1";
+
+/// A stylization's state between two steps.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ResumeState {
+    /// What the run was: a resumed run must be the same job.
+    pub job: JobKey,
+    /// The field after the refit (the first guides are built from it).
+    pub refit_sh: Vec<f32>,
+    /// The field when the smooth update began (its guides are built from it).
+    pub smooth_sh: Option<Vec<f32>>,
+    /// The field now, and its RMSprop state.
+    pub sh: Vec<f32>,
+    pub rms: Vec<f32>,
+    /// Image steps done (0: the refit just ended).
+    pub image_steps: usize,
+    /// Optimiser steps over all phases (the shared learning-rate schedule).
+    pub optimiser_steps: usize,
+    pub curve: Vec<CurvePoint>,
+}
+
+/// The parts of a job that decide its result.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobKey {
+    pub method: Method,
+    pub photo: PathBuf,
+    pub case: PathBuf,
+    pub style: Option<PathBuf>,
+    /// The config as TOML (floats compare exactly in text).
+    pub config: String,
+}
+
+impl JobKey {
+    pub fn of(job: &StylizeJob) -> Self {
+        Self {
+            method: job.method,
+            photo: job.photo.clone(),
+            case: job.case.clone(),
+            style: job.style.clone(),
+            config: toml::to_string(&job.config).unwrap_or_default(),
+        }
+    }
+}
+
+pub fn path(out: &Path) -> PathBuf {
+    out.join(RESUME_FILE)
+}
+
+impl ResumeState {
+    pub fn save(&self, out: &Path) -> Result<()> {
+        files::save(&path(out), MAGIC, self)
+    }
+
+    /// The state a killed run of `job` left in its output folder, if any;
+    /// an error when the folder holds another job's state.
+    pub fn load(job: &StylizeJob) -> Result<Option<Self>> {
+        let file = path(&job.out);
+        if !file.exists() {
+            return Ok(None);
+        }
+        let state = Self::read(&file)?;
+        let key = JobKey::of(job);
+        if state.job != key {
+            bail!(
+                "{} belongs to another stylization (method, inputs or config differ: it was {:?} of {} after {}); \
+                 run without --resume to start again, or choose another output folder",
+                file.display(),
+                state.job.method,
+                state.job.photo.display(),
+                state.job.case.display()
+            );
+        }
+        Ok(Some(state))
+    }
+
+    /// Reads a resume file, whatever job it belongs to.
+    pub fn read(file: &Path) -> Result<Self> {
+        files::load(file, MAGIC, "a refnpr stylization resume file")
+    }
+
+    /// Removes the state of a finished run.
+    pub fn remove(out: &Path) {
+        std::fs::remove_file(path(out)).ok();
+    }
+}
