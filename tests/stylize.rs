@@ -986,6 +986,7 @@ fn robustness_restylizes_with_the_runs_method() {
             backend: common::backend(),
             data: None,
             robustness_epochs: Some(2),
+            resume: false,
         };
         let e = evaluate_stylization(&eval, &refnpr::Quiet).unwrap();
         // The path frame nearest the reference camera (training view 1).
@@ -1018,12 +1019,20 @@ fn robustness_restylizes_with_the_runs_method() {
         if method == Method::RefNpr {
             assert!(robustness > photoreal + 1.0, "restylized {robustness:.2} dB vs photoreal {photoreal:.2} dB");
         }
+        // Resumed: the finished restylization is kept, not run again, and gives the same figure.
+        let restyled = out.join(format!("robustness/stylized_{nearest}/checkpoint.bin"));
+        let written = std::fs::metadata(&restyled).unwrap().modified().unwrap();
+        let again = evaluate_stylization(&EvalJob { resume: true, ..eval }, &refnpr::Quiet).unwrap();
+        assert_eq!(again.robustness_psnr, e.robustness_psnr);
+        assert_eq!(std::fs::metadata(&restyled).unwrap().modified().unwrap(), written, "restylized again");
     }
 }
 
 /// `refnpr stylize` killed with SIGKILL in the smooth update, then run again
 /// with `--resume`: the field and the loss curve are bit for bit those of an
-/// uninterrupted run (on flex: the suite runs this on flex only).
+/// uninterrupted run (on flex: the suite runs this on flex only). The two
+/// `refnpr` processes run on one rayon thread, the uninterrupted run in this
+/// process on the default pool (two threads on CI): the same bits either way.
 #[test]
 fn a_killed_stylization_resumes_to_the_same_field() {
     let t = TempDir::new("stylize-resume");
@@ -1052,6 +1061,7 @@ fn a_killed_stylization_resumes_to_the_same_field() {
         if resume {
             c.arg("--resume");
         }
+        c.env("RAYON_NUM_THREADS", "1");
         c.stdout(std::process::Stdio::null()).stderr(std::process::Stdio::null());
         c
     };

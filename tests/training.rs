@@ -235,3 +235,37 @@ fn a_diverging_fit_stops_and_keeps_the_last_good_checkpoint() {
         std::fs::read_dir(&out).unwrap().flatten().map(|e| e.file_name().to_string_lossy().into_owned()).collect();
     assert!(!names.iter().any(|n| n.ends_with(".tmp")), "temporary files left behind: {names:?}");
 }
+
+/// On flex the fit is the same bits whatever the thread count: the `refnpr
+/// train` process on one rayon thread ends with the grid this process (the
+/// machine's default pool, two threads on CI) fits.
+#[test]
+fn the_fit_is_the_same_bits_on_one_thread_and_on_the_default_pool() {
+    let t = TempDir::new("threads");
+    let ds = tiny_scene(&t.path().join("scene"));
+    let cfg = tiny_config(40);
+    let config_file = t.path().join("config.toml");
+    std::fs::write(&config_file, toml::to_string(&cfg).unwrap()).unwrap();
+    let here = t.path().join("here");
+    run_training(&ds, cfg, &here, refnpr::BackendKind::Flex, false, &refnpr::Quiet).unwrap();
+    let one = t.path().join("one");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_refnpr"))
+        .args(["train", "--backend", "flex", "--data"])
+        .arg(t.path().join("scene"))
+        .arg("--out")
+        .arg(&one)
+        .arg("--config")
+        .arg(&config_file)
+        .env("RAYON_NUM_THREADS", "1")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let dev = refnpr::BackendKind::Flex.device();
+    let (a, b) = (checkpoint::load(&here, &dev).unwrap(), checkpoint::load(&one, &dev).unwrap());
+    let bits = |t: &burn::tensor::Tensor<2>| to_vec(t.clone()).iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+    assert_eq!(a.grid.coords, b.grid.coords);
+    assert!(bits(&a.grid.density) == bits(&b.grid.density), "densities differ");
+    assert!(bits(&a.grid.sh) == bits(&b.grid.sh), "SH differ");
+}

@@ -183,6 +183,10 @@ enum Command {
         /// Which path frames --robustness restylizes from: the nearest to the reference camera, or spread along the path.
         #[arg(long, value_enum, default_value_t = RobustnessViews::Near)]
         robustness_views: RobustnessViews,
+        /// Keep the restylizations a killed `eval --robustness` finished, and continue the one
+        /// it was running from its resume.bin.
+        #[arg(long)]
+        resume: bool,
         /// Also write the JSON here.
         #[arg(long)]
         out: Option<PathBuf>,
@@ -223,6 +227,10 @@ enum Command {
         case_seconds: f64,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// The process's peak memory may not exceed this (a header claiming a huge size
+        /// must be refused before allocating).
+        #[arg(long, default_value_t = 256.0)]
+        memory_mb: f64,
         /// Real scenes to add to the seed inputs, when the folder exists.
         #[arg(long, default_value = "../shared/data")]
         shared_data: PathBuf,
@@ -277,24 +285,25 @@ enum Command {
 }
 
 /// `refnpr fuzz`: one target, a JSON report; crashes make it fail.
-fn run_fuzz(target: &str, seconds: f64, cases: u64, case_seconds: f64, seed: u64, shared: &Path) -> Result<()> {
+fn run_fuzz(target: &str, limits: &fuzz::Limits, memory_mb: f64, shared: &Path) -> Result<()> {
     let scratch = std::env::temp_dir().join(format!("refnpr-fuzz-{target}-{}", std::process::id()));
     let t = match target {
         "cli" => fuzz::Target { name: "cli".into(), seeds: cli_fuzz_seeds(), check: Box::new(parse_cli_bytes) },
         name => fuzz::target(name, &scratch, shared.is_dir().then_some(shared))?,
     };
-    let limits = fuzz::Limits { max_cases: cases, max_seconds: seconds, case_seconds, seed };
-    let report = fuzz::run(&t, &limits);
+    let report = fuzz::run(&t, limits);
     std::fs::remove_dir_all(&scratch).ok();
     let report = report?;
     println!("{}", serde_json::to_string_pretty(&report)?);
+    let crashes: u64 = report.crashes.iter().map(|c| c.count).sum();
+    let saved = fuzz::crash_dir();
     ensure!(
-        report.crashes.is_empty(),
-        "{} inputs of {} panicked (saved under {})",
-        report.crashes.len(),
-        target,
-        fuzz::crash_dir().display()
+        crashes == 0,
+        "{crashes} inputs of {target} panicked (the first of each kind saved under {})",
+        saved.display()
     );
+    let peak = report.peak_rss_mb.unwrap_or(0.0);
+    ensure!(peak <= memory_mb, "fuzzing {target} peaked at {peak:.0} MB, over the {memory_mb:.0} MB budget");
     Ok(())
 }
 
@@ -354,11 +363,32 @@ fn run() -> Result<()> {
             let stylize = matches.subcommand_matches("stylize").expect("the stylize subcommand was parsed");
             run_stylize_command(cli.command, stylize, &progress)
         }
-        Command::Eval { run, reference, gt, robustness, robustness_epochs, robustness_views, out, data, backend } => {
+        Command::Eval {
+            run,
+            reference,
+            gt,
+            robustness,
+            robustness_epochs,
+            robustness_views,
+            resume,
+            out,
+            data,
+            backend,
+        } => {
             let backend = backend_or_env(backend, &progress)?;
             let json = match reference {
                 Some(case) => {
-                    let job = EvalJob { run, case, gt, robustness, robustness_views, backend, data, robustness_epochs };
+                    let job = EvalJob {
+                        run,
+                        case,
+                        gt,
+                        robustness,
+                        robustness_views,
+                        backend,
+                        data,
+                        robustness_epochs,
+                        resume,
+                    };
                     serde_json::to_value(stylization::evaluate_stylization(&job, &progress)?)?
                 }
                 None => {
@@ -389,8 +419,9 @@ fn run() -> Result<()> {
             }
             Ok(())
         }
-        Command::Fuzz { target, seconds, cases, case_seconds, seed, shared_data } => {
-            run_fuzz(&target, seconds, cases, case_seconds, seed, &shared_data)
+        Command::Fuzz { target, seconds, cases, case_seconds, seed, memory_mb, shared_data } => {
+            let limits = fuzz::Limits { max_cases: cases, max_seconds: seconds, case_seconds, seed };
+            run_fuzz(&target, &limits, memory_mb, &shared_data)
         }
         Command::Scene { out, seed, size } => {
             procedural::write_scene(&out, &procedural::SceneOptions { seed, size, ..Default::default() })?;

@@ -24,7 +24,7 @@
 //!   as new references, stylized again with the run's method; PSNR between
 //!   the two fields' renders along the path, averaged.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail, ensure};
 use glam::Vec3;
@@ -36,6 +36,7 @@ use crate::reference::case::{self, ReferenceCase};
 use crate::scene::camera::{Camera, from_ndc};
 use crate::scene::data::Dataset;
 use crate::stylize::config::StylizeConfig;
+use crate::stylize::resume;
 use crate::stylize::run::run_stylize;
 use crate::stylize::{Method, StylizeJob};
 use crate::util::backend::BackendKind;
@@ -246,6 +247,9 @@ pub struct EvalJob {
     pub data: Option<PathBuf>,
     /// Epochs of the robustness re-stylizations (None = the run's own schedule).
     pub robustness_epochs: Option<usize>,
+    /// Keep the restylizations a killed evaluation finished (same method and
+    /// config), and resume the one it was running.
+    pub resume: bool,
 }
 
 /// Depth tolerance of the visibility tests: three voxels; in forward-facing
@@ -358,12 +362,7 @@ fn speckle_fraction((speckled, counted): (usize, usize)) -> f32 {
     speckled as f32 / counted.max(1) as f32
 }
 
-fn ground_truth_psnrs(
-    ck: &Checkpoint,
-    dataset: &Dataset,
-    case: &ReferenceCase,
-    gt_dir: &std::path::Path,
-) -> Result<TruthPsnrs> {
+fn ground_truth_psnrs(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, gt_dir: &Path) -> Result<TruthPsnrs> {
     let tol = tolerance(ck);
     let gt = crate::scene::data::load(gt_dir, &ck.meta.config.data)
         .with_context(|| format!("ground truth {}", gt_dir.display()))?;
@@ -420,6 +419,18 @@ fn stability(frames: &[SurfaceRender], tol: Tolerance) -> Vec<Stability> {
         .collect()
 }
 
+/// Whether `out` holds a finished stylization (a checkpoint, no resume
+/// file left) made with `method` and `config`.
+fn finished_restylization(out: &Path, method: Method, config: &StylizeConfig) -> bool {
+    let finished = out.join(checkpoint::CHECKPOINT_FILE).exists() && !resume::path(out).exists();
+    let report: Option<serde_json::Value> = files::read_json(&out.join("stylize.json")).ok();
+    let same = report.is_some_and(|r| {
+        serde_json::from_value::<Method>(r["method"].clone()).is_ok_and(|m| m == method)
+            && serde_json::from_value::<StylizeConfig>(r["config"].clone()).is_ok_and(|c| &c == config)
+    });
+    finished && same
+}
+
 /// Restylizes from the run's own renders at path frames `chosen` and
 /// compares the path renders of each result with the run's.
 fn robustness(
@@ -462,7 +473,7 @@ fn robustness(
             message: format!("restylizing from path frame {frame}"),
         });
         let restyle = StylizeJob {
-            resume: false,
+            resume: job.resume,
             photo: photo.clone(),
             case: case_dir,
             out: out.clone(),
@@ -474,7 +485,10 @@ fn robustness(
             registration: None,
             render_test: false,
         };
-        run_stylize(&restyle, progress)?;
+        match job.resume && finished_restylization(&out, method, &config) {
+            true => progress.info(format!("keeping the finished restylization {}", out.display())),
+            false => drop(run_stylize(&restyle, progress)?),
+        }
         let again = checkpoint::load_with(&out, &ck.grid.device(), false)?;
         // One PSNR over all the path frames' pixels, one render at a time.
         let (mut sum, mut n) = (0.0f64, 0usize);

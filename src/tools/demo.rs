@@ -189,6 +189,7 @@ fn evaluate_demo(
         backend,
         data: None,
         robustness_epochs: None,
+        resume: false,
     };
     let eval = stylization::evaluate_stylization(&job, progress)?;
     let truth = data::load(&twin, &ck.meta.config.data)?;
