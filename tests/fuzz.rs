@@ -33,7 +33,16 @@ fn fuzz_text_parsers() {
 
 #[test]
 fn fuzz_file_parsers() {
-    for name in ["checkpoint", "registration", "image", "transforms"] {
+    for name in [
+        "checkpoint",
+        "registration",
+        "image",
+        "transforms",
+        "poses_bounds",
+        "nsvf_intrinsics",
+        "nsvf_pose",
+        "nsvf_bbox",
+    ] {
         fuzz_briefly(name, 2000);
     }
 }

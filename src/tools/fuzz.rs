@@ -339,6 +339,10 @@ pub const TARGETS: &[&str] = &[
     "checkpoint",
     "registration",
     "image",
+    "poses_bounds",
+    "nsvf_intrinsics",
+    "nsvf_pose",
+    "nsvf_bbox",
 ];
 
 /// Builds target `name`. `scratch` is a private folder for files the
@@ -437,6 +441,26 @@ pub fn target(name: &str, scratch: &Path, shared_data: Option<&Path>) -> Result<
             });
             (seeds, check)
         }
+        "poses_bounds" => {
+            let dir = tiny_llff(scratch)?;
+            let file = dir.join("poses_bounds.npy");
+            let mut seeds = vec![std::fs::read(&file)?];
+            seeds.extend(real("nerf_llff_data/fern/poses_bounds.npy")?);
+            (seeds, Box::new(move |b| parse_file(&file, b, || data::load(&dir, &Default::default()).map(drop))))
+        }
+        "nsvf_intrinsics" | "nsvf_pose" | "nsvf_bbox" => {
+            let dir = tiny_nsvf(scratch)?;
+            let file = match name {
+                "nsvf_intrinsics" => dir.join("intrinsics.txt"),
+                "nsvf_pose" => dir.join("pose").join("0_000.txt"),
+                _ => dir.join("bbox.txt"),
+            };
+            let mut seeds = vec![std::fs::read(&file)?];
+            if name == "nsvf_intrinsics" {
+                seeds.push(b"10 4 3 0\n0 0 0\n1\n".to_vec()); // the DeepVoxels form
+            }
+            (seeds, Box::new(move |b| parse_file(&file, b, || data::load(&dir, &Default::default()).map(drop))))
+        }
         other => bail!("no fuzz target '{other}' (targets: {}, cli)", TARGETS.join(", ")),
     };
     Ok(Target { name: name.to_string(), seeds, check })
@@ -463,6 +487,36 @@ fn tiny_scene(scratch: &Path) -> Result<PathBuf> {
     if !dir.join("transforms_train.json").exists() {
         let opts = procedural::SceneOptions { seed: 1, size: 8, num_train: 2, num_val: 1, num_test: 1 };
         procedural::write_scene(&dir, &opts)?;
+    }
+    Ok(dir)
+}
+
+/// An LLFF folder: 3 images of 4x3 pixels and their `poses_bounds.npy`.
+fn tiny_llff(scratch: &Path) -> Result<PathBuf> {
+    let dir = scratch.join("llff");
+    let mut poses = Vec::new();
+    for i in 0..3 {
+        // Columns [down, right, back] then [h, w, f]; then near and far.
+        let rows = [[0.0, 1.0, 0.0, 0.1 * i as f32, 3.0], [-1.0, 0.0, 0.0, 0.0, 4.0], [0.0, 0.0, 1.0, 0.0, 5.0]];
+        poses.extend(rows.iter().flatten());
+        poses.extend([2.0, 20.0]);
+        let img = image::RgbImage::from_pixel(4, 3, image::Rgb([10, 20, 30 * i as u8]));
+        crate::util::image::write_png(&dir.join("images").join(format!("image{i:03}.png")), img)?;
+    }
+    npy::write_f32(&dir.join("poses_bounds.npy"), &[3, 17], &poses)?;
+    Ok(dir)
+}
+
+/// An NSVF folder: 3 images (train, val, test), poses, intrinsics, box.
+fn tiny_nsvf(scratch: &Path) -> Result<PathBuf> {
+    let dir = scratch.join("nsvf");
+    files::write_text(&dir.join("intrinsics.txt"), "10 0 4 0\n0 10 3 0\n0 0 1 0\n0 0 0 1\n")?;
+    files::write_text(&dir.join("bbox.txt"), "-2 -2 -2 2 2 2 0.1\n")?;
+    for (i, name) in ["0_000", "1_000", "2_000"].iter().enumerate() {
+        let img = image::RgbImage::from_pixel(8, 6, image::Rgb([1, 2, 3]));
+        crate::util::image::write_png(&dir.join("rgb").join(format!("{name}.png")), img)?;
+        let pose = format!("1 0 0 0\n0 1 0 0\n0 0 1 {}\n0 0 0 1\n", 4 + i);
+        files::write_text(&dir.join("pose").join(format!("{name}.txt")), &pose)?;
     }
     Ok(dir)
 }
@@ -526,19 +580,54 @@ fn image_seeds() -> Result<Vec<Vec<u8>>> {
         DynamicImage::ImageRgb8(image::imageops::resize(&rgb, 5, 3, image::imageops::FilterType::Nearest)),
         DynamicImage::ImageRgba16(DynamicImage::ImageRgb8(rgb).to_rgba16()),
     ];
-    images
+    let mut seeds = images
         .iter()
         .map(|img| {
             let mut bytes = std::io::Cursor::new(Vec::new());
             img.write_to(&mut bytes, ImageFormat::Png).context("encoding a seed PNG")?;
             Ok(bytes.into_inner())
         })
-        .collect()
+        .collect::<Result<Vec<_>>>()?;
+    seeds.push(palette_png().context("encoding a palette seed PNG")?);
+    Ok(seeds)
+}
+
+/// An 8x8 palette PNG with a transparent entry (what some paint tools save).
+fn palette_png() -> std::result::Result<Vec<u8>, png::EncodingError> {
+    let mut bytes = Vec::new();
+    let mut enc = png::Encoder::new(&mut bytes, 8, 8);
+    enc.set_color(png::ColorType::Indexed);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.set_palette(vec![255, 0, 0, 0, 255, 0, 0, 0, 255, 9, 9, 9]);
+    enc.set_trns(vec![255, 255, 128, 0]);
+    let mut w = enc.write_header()?;
+    w.write_image_data(&(0..64).map(|i| (i % 4) as u8).collect::<Vec<_>>())?;
+    w.finish()?;
+    Ok(bytes)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The fixtures load: the fuzzer starts from inputs that reach the
+    /// parsers' ends, not from ones refused at once.
+    #[test]
+    fn the_seed_folders_and_files_are_accepted() {
+        let scratch = std::env::temp_dir().join(format!("refnpr-fuzz-seeds-{}", std::process::id()));
+        let llff = data::load(&tiny_llff(&scratch).unwrap(), &Default::default()).unwrap();
+        assert_eq!(llff.kind, DatasetKind::Llff);
+        let nsvf = data::load(&tiny_nsvf(&scratch).unwrap(), &Default::default()).unwrap();
+        assert_eq!((nsvf.kind, nsvf.train.len()), (DatasetKind::Nsvf, 1));
+        data::load(&tiny_scene(&scratch).unwrap(), &Default::default()).unwrap();
+        let ck = scratch.join("c.bin");
+        write_tiny_checkpoint(&ck).unwrap();
+        checkpoint::load(&ck, &BackendKind::Flex.device()).unwrap();
+        for png in image_seeds().unwrap() {
+            image::load_from_memory(&png).unwrap();
+        }
+        std::fs::remove_dir_all(&scratch).ok();
+    }
 
     #[test]
     fn mutations_are_deterministic_under_a_seed_and_vary() {
