@@ -58,6 +58,33 @@ fn fuzz_the_command_line() {
     assert!(text.contains("\"cases\": 5000") && text.contains("\"crashes\": []"), "{text}");
 }
 
+/// Headers that claim 10^12 elements are refused before anything that size
+/// is allocated (an attempt would abort the test process).
+#[test]
+fn headers_claiming_huge_sizes_are_refused_before_allocating() {
+    let header = "{'descr': '<f8', 'fortran_order': False, 'shape': (1000000, 1000000), }";
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    npy.extend_from_slice(header.as_bytes());
+    npy.extend_from_slice(&[0u8; 64]);
+    let e = format!("{:#}", refnpr::util::npy::parse(&npy).err().unwrap());
+    assert!(e.contains("truncated"), "{e}");
+
+    let t = TempDir::new("fuzz-huge");
+    let target = fuzz::target("checkpoint", t.path(), None).unwrap();
+    let file = t.path().join("huge.bin");
+    // After the 8-byte magic: the metadata string's length, its text, then the coordinates' length.
+    let meta_len = u64::from_le_bytes(target.seeds[0][8..16].try_into().unwrap()) as usize;
+    for length_at in [8, 16 + meta_len] {
+        let mut bytes = target.seeds[0].clone();
+        bytes[length_at..length_at + 8].copy_from_slice(&1_000_000_000_000u64.to_le_bytes());
+        std::fs::write(&file, &bytes).unwrap();
+        let e =
+            format!("{:#}", refnpr::field::checkpoint::load(&file, &refnpr::BackendKind::Flex.device()).err().unwrap());
+        assert!(e.contains("huge.bin"), "{e}");
+    }
+}
+
 /// Inputs the fuzzer found panicking (fixed since): each is now a clear error.
 #[test]
 fn inputs_the_fuzzer_found_are_refused() {
