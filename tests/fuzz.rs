@@ -58,15 +58,20 @@ fn fuzz_the_command_line() {
     assert!(text.contains("\"cases\": 5000") && text.contains("\"crashes\": []"), "{text}");
 }
 
+/// A version-1 `.npy` file: magic, header length, `header`, then `body`.
+fn npy_bytes(header: &str, body: &[u8]) -> Vec<u8> {
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    npy.extend_from_slice(header.as_bytes());
+    npy.extend_from_slice(body);
+    npy
+}
+
 /// Headers that claim 10^12 elements are refused before anything that size
 /// is allocated (an attempt would abort the test process).
 #[test]
 fn headers_claiming_huge_sizes_are_refused_before_allocating() {
-    let header = "{'descr': '<f8', 'fortran_order': False, 'shape': (1000000, 1000000), }";
-    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
-    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    npy.extend_from_slice(header.as_bytes());
-    npy.extend_from_slice(&[0u8; 64]);
+    let npy = npy_bytes("{'descr': '<f8', 'fortran_order': False, 'shape': (1000000, 1000000), }", &[0u8; 64]);
     let e = format!("{:#}", refnpr::util::npy::parse(&npy).err().unwrap());
     assert!(e.contains("truncated"), "{e}");
 
@@ -89,17 +94,11 @@ fn headers_claiming_huge_sizes_are_refused_before_allocating() {
 #[test]
 fn inputs_the_fuzzer_found_are_refused() {
     // An .npy header whose shape multiplies past usize: refused before any allocation.
-    let header = "{'descr': '<f4', 'fortran_order': False, 'shape': (4294967296, 4294967296, 17), }";
-    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
-    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    npy.extend_from_slice(header.as_bytes());
+    let npy = npy_bytes("{'descr': '<f4', 'fortran_order': False, 'shape': (4294967296, 4294967296, 17), }", &[]);
     let e = format!("{:#}", refnpr::util::npy::parse(&npy).err().unwrap());
     assert!(e.contains("truncated"), "{e}");
     // ... and one whose ')' comes before its '('.
-    let header = "{'descr': '<f4', 'fortran_order': False, 'shape': ), (2, }";
-    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
-    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    npy.extend_from_slice(header.as_bytes());
+    let npy = npy_bytes("{'descr': '<f4', 'fortran_order': False, 'shape': ), (2, }", &[]);
     assert!(refnpr::util::npy::parse(&npy).is_err());
     // A reference case asking for a render path of 2^31 frames (it hung, building them).
     let text = "path_frames = 2147483648\n[[reference]]\nstyle = \"s.png\"\nview = \"path:1\"\n";

@@ -131,11 +131,10 @@ fn fit(
         let steady_step = last_upsample.is_none_or(|s| trainer.step > s);
         let m = transfer::measure(|| trainer.step_once());
         let (st, moved) = (m.value?, m.moved);
-        let kept = match saved_at {
+        diverged::check_loss(st.mse, Phase::Fit, trainer.step, || match saved_at {
             Some(k) => format!("the last good checkpoint, {} (step {k}), is kept", checkpoint.display()),
             None => "no checkpoint of this run was written yet".to_string(),
-        };
-        diverged::check_loss(st.mse, Phase::Fit, trainer.step, &kept)?;
+        })?;
         all = (all.0.plus(moved), all.1 + 1);
         if steady_step {
             steady = (steady.0.plus(moved), steady.1 + 1);

@@ -360,7 +360,7 @@ impl<'a> Stylizer<'a> {
                 }
                 let m = transfer::measure(|| self.image_step(v, step, total_steps, &guidance, smooth));
                 let (point, moved) = (m.value?, m.moved);
-                diverged::check_loss(point.total, Phase::ImageEpochs, step + 1, &self.nothing_written())?;
+                diverged::check_loss(point.total, Phase::ImageEpochs, step + 1, || self.what_is_kept())?;
                 if smooth {
                     smooth_moved = smooth_moved.plus(moved);
                 } else {
@@ -397,7 +397,7 @@ impl<'a> Stylizer<'a> {
 
     /// What a diverged run leaves: its checkpoint is written only at its
     /// end; its last resume point, if any, is good.
-    fn nothing_written(&self) -> String {
+    fn what_is_kept(&self) -> String {
         let out = &self.job.out;
         match self.saved_at {
             Some(k) => format!(
@@ -431,7 +431,7 @@ impl<'a> Stylizer<'a> {
         if let Some(what) = diverged::first_non_finite(&[("SH colour", &state.sh), ("RMSprop state", &state.rms)]) {
             bail!(
                 "the field's {what} holds NaN or infinite values after image step {image_steps}; {}",
-                self.nothing_written()
+                self.what_is_kept()
             );
         }
         state.save(&self.job.out)?;
@@ -643,7 +643,7 @@ impl<'a> Stylizer<'a> {
         }
         for step in 0..steps {
             let mse = self.refit_step(step, &rays, &colours);
-            diverged::check_loss(mse, Phase::Refit, step + 1, &self.nothing_written())?;
+            diverged::check_loss(mse, Phase::Refit, step + 1, || self.what_is_kept())?;
             let message = format!("mse {mse:.5} psnr {:.2}", psnr_from_mse(mse));
             progress.event(Event::Step { phase: Phase::Refit, done: step + 1, total: steps, message });
             self.curve.push(CurvePoint::refit(step, mse));

@@ -6,11 +6,13 @@ use anyhow::{Result, bail};
 use crate::util::progress::Phase;
 
 /// An error when `loss` (step `step`, counted from 1, of `phase`) is NaN or
-/// infinite; `kept` says what on disk is still good.
-pub fn check_loss(loss: f32, phase: Phase, step: usize, kept: &str) -> Result<()> {
+/// infinite; `kept` says what on disk is still good (called only then: the
+/// check runs every step).
+pub fn check_loss(loss: f32, phase: Phase, step: usize, kept: impl FnOnce() -> String) -> Result<()> {
     if loss.is_finite() {
         return Ok(());
     }
+    let kept = kept();
     bail!(
         "the {phase} diverged at step {step}: its loss is {loss} (a learning rate too high for this scene?); \
          stopped before writing anything from it; {kept}"
@@ -28,10 +30,10 @@ mod tests {
 
     #[test]
     fn a_nan_or_infinite_loss_names_phase_and_step() {
-        assert!(check_loss(0.25, Phase::Fit, 3, "").is_ok());
-        let e = check_loss(f32::NAN, Phase::ImageEpochs, 7, "nothing written").unwrap_err().to_string();
+        assert!(check_loss(0.25, Phase::Fit, 3, || unreachable!("only asked on divergence")).is_ok());
+        let e = check_loss(f32::NAN, Phase::ImageEpochs, 7, || "nothing written".into()).unwrap_err().to_string();
         assert!(e.contains("image epochs diverged at step 7") && e.contains("NaN"), "{e}");
-        assert!(check_loss(f32::INFINITY, Phase::Refit, 1, "").is_err());
+        assert!(check_loss(f32::INFINITY, Phase::Refit, 1, String::new).is_err());
         assert_eq!(first_non_finite(&[("a", &[1.0]), ("b", &[0.0, f32::NAN])]), Some("b"));
         assert_eq!(first_non_finite(&[("a", &[1.0])]), None);
     }
