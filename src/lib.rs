@@ -11,6 +11,7 @@
 //! | `stylize` | stage 3: Ref-NPR (R³ + TCM + colour matching) and the ARF baseline: config, losses, TCM, the style field, the `Stylizer` and its image step, the run |
 //! | `eval` | image metrics, photoreal and stylization metrics, camera-path renders |
 //! | `tools` | the benchmarks, the one-command demo, the painterly repaint filter |
+//! | `notebook` | the library as a notebook uses it: one type per stage, values that display in a Jupyter cell (evcxr) |
 //! | `util` | backend choice, tensor helpers, the one `Image` type and its files, file writes, progress events, per-step RNG, memory readings |
 //!
 //! Every stage reads and writes files (dataset folder -> `RUN/checkpoint.bin`
@@ -23,6 +24,7 @@
 
 pub mod eval;
 pub mod field;
+pub mod notebook;
 pub mod photo;
 pub mod reference;
 pub mod scene;

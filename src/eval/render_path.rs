@@ -9,7 +9,7 @@ use anyhow::{Result, bail};
 use crate::field::checkpoint::Checkpoint;
 use crate::scene::camera::Camera;
 use crate::scene::data::{Dataset, DatasetKind};
-use crate::util::image;
+use crate::util::image::{self, Image};
 use crate::util::progress::{Event, Phase, Progress};
 
 /// Which cameras to render.
@@ -38,11 +38,13 @@ pub fn path_cameras(dataset: &Dataset, kind: PathKind, frames: usize) -> Result<
     })
 }
 
-/// Renders the cameras to `out/rgb/NNNN.png`, `out/depth/NNNN.png`, `out/path.gif`.
-pub fn render_frames(ck: &Checkpoint, cameras: &[Camera], out: &Path, progress: &dyn Progress) -> Result<()> {
+/// Renders the cameras to `out/rgb/NNNN.png`, `out/depth/NNNN.png`,
+/// `out/path.gif`, and returns the frames.
+pub fn render_frames(ck: &Checkpoint, cameras: &[Camera], out: &Path, progress: &dyn Progress) -> Result<Vec<Image>> {
     let started = Instant::now();
     progress.event(Event::Start { phase: Phase::Render, done: 0, total: cameras.len() });
     let mut gif_frames = Vec::new();
+    let mut frames = Vec::with_capacity(cameras.len());
     for (i, cam) in cameras.iter().enumerate() {
         let r = ck.render_view(cam);
         r.image.save_png(&out.join("rgb").join(format!("{i:04}.png")))?;
@@ -54,10 +56,11 @@ pub fn render_frames(ck: &Checkpoint, cameras: &[Camera], out: &Path, progress: 
             &depth_rgb,
         )?;
         gif_frames.push(r.image.to_rgb8());
+        frames.push(r.image);
         let message = out.display().to_string();
         progress.event(Event::Step { phase: Phase::Render, done: i + 1, total: cameras.len(), message });
     }
     image::save_gif(&out.join("path.gif"), &gif_frames, 66)?;
     progress.event(Event::PhaseDone { phase: Phase::Render, seconds: started.elapsed().as_secs_f64() });
-    Ok(())
+    Ok(frames)
 }

@@ -40,6 +40,18 @@ pub struct TrainMetrics {
     /// steps after the last upsampling: the steady state), `evaluate`.
     #[serde(default)]
     pub transfers: BTreeMap<String, PhaseTransfers>,
+    /// The training loss of every step this process ran (a resumed run
+    /// starts its curve at the step it resumed from).
+    #[serde(default)]
+    pub loss_curve: Vec<FitPoint>,
+}
+
+/// One training step's loss.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
+pub struct FitPoint {
+    pub step: usize,
+    /// Mean squared error of the batch's colours (the photo loss).
+    pub mse: f32,
 }
 
 /// Trains (or, with `resume`, continues) a run in `out`: checkpoints, test
@@ -58,7 +70,7 @@ pub fn run_training(
     let mut trainer = start(dataset, config, resume_from, backend, progress)?;
     files::write_toml(&out.join("config.toml"), &trainer.config)?;
     let started = Instant::now();
-    let mut transfers = fit(&mut trainer, dataset, out, progress)?;
+    let (mut transfers, loss_curve) = fit(&mut trainer, dataset, out, progress)?;
     trainer.save(dataset, out)?;
     progress.event(Event::PhaseDone { phase: Phase::Fit, seconds: started.elapsed().as_secs_f64() });
     progress.info(format!("evaluating {} test views", dataset.test.len()));
@@ -83,6 +95,7 @@ pub fn run_training(
         per_view_psnr: report.per_view_psnr,
         peak_rss_mb: peak_rss_mb(),
         transfers,
+        loss_curve,
     };
     files::write_json(&out.join("metrics.json"), &metrics)?;
     Ok(metrics)
@@ -110,13 +123,14 @@ fn start(
 /// Runs the remaining steps, checkpointing every `checkpoint_every`.
 /// `train_seconds` counts the time since the last checkpoint, so a resumed
 /// run adds only what it did itself. Returns the steps' host-device traffic
-/// (checkpoint writes apart): `fit` and `fit_final_resolution`.
+/// (checkpoint writes apart): `fit` and `fit_final_resolution`, and the
+/// loss of every step.
 fn fit(
     trainer: &mut Trainer,
     dataset: &Dataset,
     out: &Path,
     progress: &dyn Progress,
-) -> Result<BTreeMap<String, PhaseTransfers>> {
+) -> Result<(BTreeMap<String, PhaseTransfers>, Vec<FitPoint>)> {
     let total = trainer.config.optim.steps;
     // Steps after this one run on the final grid (the upsampling step itself rebuilds it).
     let last_upsample = trainer.config.grid.upsample_steps.iter().copied().max();
@@ -127,6 +141,7 @@ fn fit(
     let checkpoint = out.join(checkpoint::CHECKPOINT_FILE);
     // The step of this run's last checkpoint: a resumed run starts from one.
     let mut saved_at = (trainer.step > 0).then_some(trainer.step);
+    let mut curve = Vec::with_capacity(total.saturating_sub(trainer.step));
     while trainer.step < total {
         let steady_step = last_upsample.is_none_or(|s| trainer.step > s);
         let m = transfer::measure(|| trainer.step_once());
@@ -135,6 +150,7 @@ fn fit(
             Some(k) => format!("the last good checkpoint, {} (step {k}), is kept", checkpoint.display()),
             None => "no checkpoint of this run was written yet".to_string(),
         })?;
+        curve.push(FitPoint { step: trainer.step, mse: st.mse });
         all = (all.0.plus(moved), all.1 + 1);
         if steady_step {
             steady = (steady.0.plus(moved), steady.1 + 1);
@@ -159,8 +175,9 @@ fn fit(
         }
     }
     trainer.train_seconds += segment.elapsed().as_secs_f64();
-    Ok(BTreeMap::from([
+    let transfers = BTreeMap::from([
         ("fit".to_string(), PhaseTransfers::new(all.0, all.1)),
         ("fit_final_resolution".to_string(), PhaseTransfers::new(steady.0, steady.1)),
-    ]))
+    ]);
+    Ok((transfers, curve))
 }

@@ -325,13 +325,19 @@ pub fn run_register(
     let dir = out.join("overlays");
     for (view, reg) in dataset.train.iter().zip(&file.views).take(overlays) {
         let content = ck.render_view(&view.camera).image;
-        let mut rgb: Vec<f32> = content.rgb.iter().map(|v| 0.25 + 0.35 * v).collect();
-        for (&p, c) in reg.registration.pixels.iter().zip(&reg.registration.colours) {
-            rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
-        }
-        Image::new(content.width, content.height, rgb).save_png(&dir.join(format!("{}.png", sanitize(&view.name))))?;
+        overlay(&content, &reg.registration).save_png(&dir.join(format!("{}.png", sanitize(&view.name))))?;
     }
     Ok(report)
+}
+
+/// The registered pixels in their stylized colours over the dimmed content
+/// render of their view (the paper's figure A.2).
+pub fn overlay(content: &Image, registration: &ViewRegistration) -> Image {
+    let mut rgb: Vec<f32> = content.rgb.iter().map(|v| 0.25 + 0.35 * v).collect();
+    for (&p, c) in registration.pixels.iter().zip(&registration.colours) {
+        rgb[p as usize * 3..p as usize * 3 + 3].copy_from_slice(c);
+    }
+    Image::new(content.width, content.height, rgb)
 }
 
 fn sanitize(name: &str) -> String {

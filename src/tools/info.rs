@@ -42,12 +42,13 @@ pub struct SystemInfo {
 impl SystemInfo {
     /// Gathers the report (loads VGG16, about a second, to checksum its weights).
     pub fn gather() -> Self {
-        let vgg16_sha256 = Vgg16::load(&BackendKind::Flex.device()).weights_sha256();
+        let cpu = BackendKind::ALL.into_iter().find(|b| b.is_compiled()).expect("a build has a backend");
+        let vgg16_sha256 = Vgg16::load(&cpu.device()).weights_sha256();
         Self {
             version: env!("CARGO_PKG_VERSION").to_string(),
             os: std::env::consts::OS.to_string(),
             arch: std::env::consts::ARCH.to_string(),
-            backends: BackendKind::ALL.iter().map(ToString::to_string).collect(),
+            backends: BackendKind::ALL.iter().filter(|b| b.is_compiled()).map(ToString::to_string).collect(),
             backend_env: std::env::var(crate::util::backend::BACKEND_ENV).ok(),
             wgpu_adapters: wgpu_adapters(),
             wgpu_selected: wgpu_adapter().map_err(|e| format!("{e:#}")),

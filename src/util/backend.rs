@@ -4,14 +4,19 @@
 //! written once against `Tensor<D>` and the user chooses `flex`, `ndarray` or
 //! `wgpu` on the command line (`--backend`) or through `REFNPR_BACKEND`.
 
-use anyhow::{Result, anyhow};
+use anyhow::{Result, anyhow, bail};
 use burn::tensor::Device;
+#[cfg(feature = "wgpu")]
 use burn::tensor::wgpu::wgpu;
 use clap::ValueEnum;
 use serde::Serialize;
 use std::fmt;
+#[cfg(feature = "wgpu")]
 use std::sync::OnceLock;
 use std::sync::atomic::{AtomicBool, Ordering};
+
+#[cfg(not(any(feature = "flex", feature = "ndarray", feature = "wgpu")))]
+compile_error!("refnpr needs at least one backend feature: flex, ndarray or wgpu");
 
 use crate::util::progress::Progress;
 use crate::util::transfer::human_bytes;
@@ -46,15 +51,40 @@ impl BackendKind {
         }
     }
 
-    /// The plain (no autodiff) device of this backend. For wgpu this brings
-    /// the runtime up on first use and panics if no adapter exists: entry
-    /// points call [`BackendKind::open`] first, which says so as an error.
-    #[allow(deprecated)] // ndarray is deprecated upstream but still a supported choice here
-    pub fn device(self) -> Device {
+    /// Whether this build has the backend (its cargo feature was on).
+    pub fn is_compiled(self) -> bool {
         match self {
-            BackendKind::Flex => Device::flex(),
-            BackendKind::Ndarray => Device::ndarray(),
-            BackendKind::Wgpu => wgpu_runtime().map(|r| r.device.clone()).unwrap_or_else(|e| panic!("{e:#}")),
+            BackendKind::Flex => cfg!(feature = "flex"),
+            BackendKind::Ndarray => cfg!(feature = "ndarray"),
+            BackendKind::Wgpu => cfg!(feature = "wgpu"),
+        }
+    }
+
+    /// The plain (no autodiff) device of this backend. For wgpu this brings
+    /// the runtime up on first use and panics if no adapter exists, and a
+    /// backend left out of the build panics: entry points call
+    /// [`BackendKind::open`] first, which says either as an error.
+    pub fn device(self) -> Device {
+        self.try_device().unwrap_or_else(|e| panic!("{e:#}"))
+    }
+
+    #[allow(deprecated)] // ndarray is deprecated upstream but still a supported choice here
+    fn try_device(self) -> Result<Device> {
+        if !self.is_compiled() {
+            bail!(
+                "this build of refnpr has no {self} backend: build it with the cargo feature `{self}` \
+                 (a notebook: `:dep refnpr = {{ path = \"..\", features = [\"{self}\"] }}`)"
+            );
+        }
+        match self {
+            #[cfg(feature = "flex")]
+            BackendKind::Flex => Ok(Device::flex()),
+            #[cfg(feature = "ndarray")]
+            BackendKind::Ndarray => Ok(Device::ndarray()),
+            #[cfg(feature = "wgpu")]
+            BackendKind::Wgpu => wgpu_runtime().map(|r| r.device.clone()),
+            #[allow(unreachable_patterns)] // every backend compiled in
+            _ => unreachable!("checked by is_compiled"),
         }
     }
 
@@ -62,15 +92,14 @@ impl BackendKind {
     /// wgpu, the first call in a process also reports the adapter it runs
     /// on (and warns when that adapter is a CPU).
     pub fn open(self, progress: &dyn Progress) -> Result<Device> {
-        if self != BackendKind::Wgpu {
-            return Ok(self.device());
+        let device = self.try_device()?;
+        if self == BackendKind::Wgpu {
+            static ANNOUNCED: AtomicBool = AtomicBool::new(false);
+            if !ANNOUNCED.swap(true, Ordering::SeqCst) {
+                announce_wgpu(progress)?;
+            }
         }
-        let runtime = wgpu_runtime()?;
-        static ANNOUNCED: AtomicBool = AtomicBool::new(false);
-        if !ANNOUNCED.swap(true, Ordering::SeqCst) {
-            announce_wgpu(progress)?;
-        }
-        Ok(runtime.device.clone())
+        Ok(device)
     }
 
     /// The same device with autodiff enabled.
@@ -108,6 +137,7 @@ pub struct AdapterSummary {
 pub const SOFTWARE_ADAPTER_SLOWDOWN: &str = "7-12x";
 
 impl AdapterSummary {
+    #[cfg(feature = "wgpu")]
     pub fn of(info: &wgpu::AdapterInfo, limits: &wgpu::Limits) -> Self {
         let kind = match info.device_type {
             wgpu::DeviceType::DiscreteGpu => "discrete GPU",
@@ -151,6 +181,7 @@ impl AdapterSummary {
 }
 
 /// The wgpu device of this process and its adapter.
+#[cfg(feature = "wgpu")]
 struct WgpuRuntime {
     device: Device,
     adapter: AdapterSummary,
@@ -158,6 +189,7 @@ struct WgpuRuntime {
 
 /// Brings the wgpu runtime up once per process (Burn registers one runtime
 /// per device selector; a second registration is refused).
+#[cfg(feature = "wgpu")]
 fn wgpu_runtime() -> Result<&'static WgpuRuntime> {
     static RUNTIME: OnceLock<std::result::Result<WgpuRuntime, String>> = OnceLock::new();
     RUNTIME
@@ -195,16 +227,27 @@ pub fn announce_wgpu(progress: &dyn Progress) -> Result<AdapterSummary> {
 pub fn max_buffer_bytes(device: &Device) -> Option<u64> {
     // The CPU backends report no device identity; the cubecl (GPU) ones do.
     device.identity()?;
-    wgpu_runtime().ok().map(|r| r.adapter.max_buffer_bytes)
+    wgpu_adapter().ok().map(|a| a.max_buffer_bytes)
 }
 
 /// The adapter wgpu runs on in this process (bringing the runtime up).
 pub fn wgpu_adapter() -> Result<AdapterSummary> {
-    Ok(wgpu_runtime()?.adapter.clone())
+    #[cfg(feature = "wgpu")]
+    return Ok(wgpu_runtime()?.adapter.clone());
+    #[cfg(not(feature = "wgpu"))]
+    BackendKind::Wgpu.try_device().map(|_| unreachable!("no wgpu in this build"))
+}
+
+/// Every adapter wgpu can see, on every graphics API compiled in (for
+/// `refnpr info`; does not bring the runtime up). None without the wgpu feature.
+#[cfg(not(feature = "wgpu"))]
+pub fn wgpu_adapters() -> Vec<AdapterSummary> {
+    Vec::new()
 }
 
 /// Every adapter wgpu can see, on every graphics API compiled in (for
 /// `refnpr info`; does not bring the runtime up).
+#[cfg(feature = "wgpu")]
 pub fn wgpu_adapters() -> Vec<AdapterSummary> {
     let instance = wgpu::Instance::new(wgpu::InstanceDescriptor {
         backends: wgpu::Backends::all(),

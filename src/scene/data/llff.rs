@@ -32,8 +32,9 @@ fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
 }
 
 /// Picks the image folder for a downscale factor: `images_<f>/` when present,
-/// else `images/` resized by f; with f = 1 and no `images/`, the first
-/// `images_<n>/` found (its own resolution).
+/// else `images/` resized by f, else the most reduced `images_<n>/` with n
+/// dividing f, resized by f / n (the LLFF archives ship `images_8/` alone);
+/// with f = 1 and no `images/`, the first `images_<n>/` found (its own resolution).
 fn image_folder(dir: &Path, factor: u32) -> Result<(PathBuf, u32)> {
     let exact = if factor > 1 { dir.join(format!("images_{factor}")) } else { dir.join("images") };
     if exact.is_dir() {
@@ -41,6 +42,12 @@ fn image_folder(dir: &Path, factor: u32) -> Result<(PathBuf, u32)> {
     }
     if dir.join("images").is_dir() {
         return Ok((dir.join("images"), factor));
+    }
+    for n in [16, 8, 4, 2] {
+        let p = dir.join(format!("images_{n}"));
+        if factor > n && factor.is_multiple_of(n) && p.is_dir() {
+            return Ok((p, factor / n));
+        }
     }
     if factor == 1 {
         for f in [2, 4, 8, 16] {
