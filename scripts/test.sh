@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The test suite on every backend (the README's test command).
 #   flex:    everything (unit tests, renderer, datasets, training, stylization, evaluation, demo, CLI)
-#   ndarray: renderer, grid, VGG16, the stylization losses / TCM / deferred back-propagation, the metrics
+#   ndarray: renderer, grid, VGG16, the stylization losses / TCM / deferred back-propagation, the metrics, the notebook API
 #   wgpu:    the same plus training, through Mesa's software Vulkan when no GPU is present
 #   (end-to-end stylization and the demo run on flex only: VGG on lavapipe or ndarray is 10-100x slower)
 #   real data (../shared/data: lego, fern): loaders and a short fit, when that folder exists
@@ -12,7 +12,10 @@ export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 
 echo "== formatting and lints"
 cargo fmt --check
-cargo clippy --all-targets -- -D warnings
+# Without wgpu: clippy checks every dependency once more (the test build
+# compiles them in full), and the wgpu stack would add minutes to CI; this
+# also proves the crate builds without its GPU backend (cargo features).
+cargo clippy --all-targets --no-default-features --features flex,ndarray -- -D warnings
 
 echo "== flex: full suite"
 REFNPR_BACKEND=flex cargo test --all-targets
@@ -20,11 +23,11 @@ REFNPR_BACKEND=flex cargo test --all-targets
 STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input --skip robustness --skip a_killed_stylization)
 
 echo "== ndarray: renderer, grid, VGG16, stylization units, metrics"
-REFNPR_BACKEND=ndarray cargo test --test renderer --test vgg --test evaluation --lib
+REFNPR_BACKEND=ndarray cargo test --test renderer --test vgg --test evaluation --test notebook --lib
 REFNPR_BACKEND=ndarray cargo test --test stylize -- "${STYLIZE_UNITS[@]}"
 
 echo "== wgpu: renderer, training, VGG16, stylization units, metrics"
-REFNPR_BACKEND=wgpu cargo test --test renderer --test training --test vgg --test evaluation
+REFNPR_BACKEND=wgpu cargo test --test renderer --test training --test vgg --test evaluation --test notebook
 REFNPR_BACKEND=wgpu cargo test --test stylize -- "${STYLIZE_UNITS[@]}"
 
 DATA="${REFNPR_SHARED_DATA:-../shared/data}"

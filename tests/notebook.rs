@@ -8,7 +8,7 @@ use refnpr::BackendKind;
 use refnpr::notebook::display::{content_block, png_bytes};
 use refnpr::notebook::*;
 use refnpr::reference::r3::RegisterParams;
-use refnpr::scene::data::Split;
+use refnpr::scene::data::{LoadOptions, Split};
 use refnpr::util::image::Image;
 
 fn ramp(w: usize, h: usize, level: f32) -> Image {
@@ -82,6 +82,8 @@ fn a_difference_measures_and_pictures_two_renders() {
 fn notebook_errors_name_the_file_and_the_key() {
     let err = Scene::load("no/such/scene").err().expect("a missing folder is an error").to_string();
     assert!(err.starts_with("error: ") && err.contains("no/such/scene"), "{err}");
+    assert_eq!(error_text(Scene::load("no/such/scene")).0, Some(err));
+    assert_eq!(error_text(Ok(1)).0, None);
 
     let t = TempDir::new("nb-typo");
     let scene = Scene::procedural(t.path().join("scene"), 16).unwrap();
@@ -129,6 +131,12 @@ fn the_notebook_stages_chain_like_the_cli() {
     other.optim.steps = 30;
     let refit = Photo::fit_or_load(&scene, other, t.path().join("photo30"), backend).unwrap();
     assert_eq!(refit.metrics.as_ref().unwrap().steps, 30);
+
+    // A scene loaded at half size is fitted, and reloaded, at half size.
+    let half = Scene::load_with(&scene.dir, &LoadOptions { downscale: 2, ..LoadOptions::default() }).unwrap();
+    let small = Photo::fit(&half, config.clone(), t.path().join("half"), backend).unwrap();
+    assert_eq!(small.dataset.test[0].camera.intrinsics.width, 12);
+    assert_eq!(small.render_view("test:0").unwrap().width, 12);
 
     let render = photo.render_view("test:1").unwrap();
     assert_eq!((render.width, render.height), (24, 24));

@@ -48,9 +48,29 @@ impl std::fmt::Display for Error {
     }
 }
 
+// Debug as Display: anyhow's Debug adds a backtrace when RUST_BACKTRACE is set.
 impl std::fmt::Debug for Error {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{:?}", self.0)
+        write!(f, "{self}")
+    }
+}
+
+/// A call's error as a cell shows it (`?` prints it and stops the cell;
+/// this keeps it as the cell's value), or "no error".
+pub struct ErrorText(pub Option<String>);
+
+/// The error `result` holds, to show in a cell.
+pub fn error_text<T>(result: Result<T>) -> ErrorText {
+    ErrorText(result.err().map(|e| e.to_string()))
+}
+
+impl ErrorText {
+    pub fn evcxr_display(&self) {
+        let text = self.0.as_deref().unwrap_or("no error");
+        #[allow(clippy::print_stdout)] // evcxr reads displays from stdout
+        {
+            print!("{}", display::content_block("text/plain", text));
+        }
     }
 }
 
@@ -93,7 +113,8 @@ impl Progress for Cells {
                     && part > entry.1
                 {
                     entry.1 = part;
-                    println!("  {phase} {done}/{total}: {message}");
+                    let sep = if message.is_empty() { "" } else { ": " };
+                    println!("  {phase} {done}/{total}{sep}{message}");
                 }
             }
             Event::PhaseDone { phase, seconds } => println!("{phase} done in {seconds:.1} s"),
@@ -108,6 +129,8 @@ impl Progress for Cells {
 pub struct Scene {
     pub dir: PathBuf,
     pub dataset: Dataset,
+    /// How it was loaded (a fit records them, so the run reloads the same views).
+    pub options: LoadOptions,
     /// The generator's options, for the procedural scene.
     pub procedural: Option<procedural::SceneOptions>,
 }
@@ -133,7 +156,7 @@ impl Scene {
     pub fn load_with(dir: impl AsRef<Path>, options: &LoadOptions) -> Result<Scene> {
         let dir = dir.as_ref().to_path_buf();
         let dataset = data::load(&dir, options)?;
-        Ok(Scene { dir, dataset, procedural: None })
+        Ok(Scene { dir, dataset, options: *options, procedural: None })
     }
 
     /// The procedural scene's exact image of any camera: `stylized` picks
@@ -162,9 +185,10 @@ impl Scene {
         Scene::load(twin)
     }
 
-    /// The training config this kind of scene starts from (`configs/*.toml`).
+    /// The training config this kind of scene starts from (`configs/*.toml`),
+    /// with the options the scene was loaded with.
     pub fn default_config(&self) -> TrainConfig {
-        TrainConfig::for_kind(self.dataset.kind)
+        TrainConfig { data: self.options, ..TrainConfig::for_kind(self.dataset.kind) }
     }
 
     /// Kind, views and image size.
@@ -210,9 +234,12 @@ pub struct Photo {
 }
 
 impl Photo {
-    /// Fits a field to `scene` into `out` (what `refnpr train` does).
+    /// Fits a field to `scene` into `out` (what `refnpr train` does). The
+    /// config's `[data]` becomes the scene's loading options: the run
+    /// reloads the views the notebook loaded.
     pub fn fit(scene: &Scene, config: TrainConfig, out: impl AsRef<Path>, backend: BackendKind) -> Result<Photo> {
         let out = out.as_ref();
+        let config = TrainConfig { data: scene.options, ..config };
         config.validate()?;
         let progress = Cells::default();
         backend.open(&progress)?;
@@ -233,6 +260,7 @@ impl Photo {
         backend: BackendKind,
     ) -> Result<Photo> {
         let out = out.as_ref();
+        let config = TrainConfig { data: scene.options, ..config };
         let same_config = std::fs::read_to_string(out.join("config.toml"))
             .ok()
             .and_then(|text| toml::from_str::<TrainConfig>(&text).ok())
@@ -553,8 +581,11 @@ fn backend_of(report: &StylizeReport) -> BackendKind {
     <BackendKind as clap::ValueEnum>::from_str(&report.backend, true).unwrap_or_default()
 }
 
+/// Something that renders a camera: a field's `render`, a scene's truth.
+pub type Renderer<'a> = &'a dyn Fn(&Camera) -> Image;
+
 /// The same cameras rendered by several fields, a row per field.
-pub fn side_by_side(rows: &[(&str, &dyn Fn(&Camera) -> Image)], cameras: &[(String, Camera)]) -> Gallery {
+pub fn side_by_side(rows: &[(&str, Renderer)], cameras: &[(String, Camera)]) -> Gallery {
     let mut items = Vec::new();
     for (name, render) in rows {
         for (label, cam) in cameras {

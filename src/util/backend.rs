@@ -225,8 +225,9 @@ pub fn announce_wgpu(progress: &dyn Progress) -> Result<AdapterSummary> {
 /// The largest tensor, in bytes, a kernel on `device` may bind: the wgpu
 /// adapter's storage-buffer limit; None on the CPU backends (no limit but memory).
 pub fn max_buffer_bytes(device: &Device) -> Option<u64> {
-    // The CPU backends report no device identity; the cubecl (GPU) ones do.
-    device.identity()?;
+    if crate::util::tensor::is_host_memory(device) {
+        return None;
+    }
     wgpu_adapter().ok().map(|a| a.max_buffer_bytes)
 }
 

@@ -49,7 +49,15 @@ fn needs_pieces(device: &Device) -> bool {
 /// which report no device identity): a copy "on the device" is then a
 /// second copy in RAM.
 pub fn is_host_memory(device: &Device) -> bool {
-    device.identity().is_none()
+    // `Device::identity` exists only in builds with a cubecl (GPU) backend;
+    // without one every device is a CPU backend's.
+    #[cfg(feature = "wgpu")]
+    return device.identity().is_none();
+    #[cfg(not(feature = "wgpu"))]
+    {
+        let _ = device;
+        true
+    }
 }
 
 /// `x.select(0, idx)` whose backward stays exact on wgpu: long index lists
