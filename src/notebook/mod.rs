@@ -218,9 +218,14 @@ impl Scene {
 
     /// The camera of `view` (`train:N`, `test:N` or `path:N` on the standard 120-frame path).
     pub fn camera(&self, view: &str) -> Result<Camera> {
-        let spec: ViewSpec = view.parse()?;
-        Ok(spec.camera(&self.dataset, crate::reference::case::DEFAULT_PATH_FRAMES)?)
+        view_camera(&self.dataset, view)
     }
+}
+
+/// The camera `view` names in `dataset` (`train:N`, `test:N`, `path:N`), as a reference case resolves it.
+fn view_camera(dataset: &Dataset, view: &str) -> Result<Camera> {
+    let spec: ViewSpec = view.parse()?;
+    Ok(spec.camera(dataset, crate::reference::case::DEFAULT_PATH_FRAMES)?)
 }
 
 /// A photorealistic run: its folder, field and dataset.
@@ -298,8 +303,7 @@ impl Photo {
 
     /// Renders `train:N`, `test:N` or `path:N`.
     pub fn render_view(&self, view: &str) -> Result<Image> {
-        let spec: ViewSpec = view.parse()?;
-        Ok(self.render(&spec.camera(&self.dataset, crate::reference::case::DEFAULT_PATH_FRAMES)?))
+        Ok(self.render(&view_camera(&self.dataset, view)?))
     }
 
     /// The training loss (MSE, log scale) by step.

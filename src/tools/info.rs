@@ -42,8 +42,9 @@ pub struct SystemInfo {
 impl SystemInfo {
     /// Gathers the report (loads VGG16, about a second, to checksum its weights).
     pub fn gather() -> Self {
-        let cpu = BackendKind::ALL.into_iter().find(|b| b.is_compiled()).expect("a build has a backend");
-        let vgg16_sha256 = Vgg16::load(&cpu.device()).weights_sha256();
+        // The first backend compiled in (flex in a default build).
+        let first = BackendKind::ALL.into_iter().find(|b| b.is_compiled()).expect("a build has a backend");
+        let vgg16_sha256 = Vgg16::load(&first.device()).weights_sha256();
         Self {
             version: env!("CARGO_PKG_VERSION").to_string(),
             os: std::env::consts::OS.to_string(),
