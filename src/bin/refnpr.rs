@@ -721,15 +721,24 @@ fn run_train(
 // mimalloc keeps freed pages mapped: the renderer allocates and frees
 // tensors of tens of MB every step, which the system allocator returns to
 // the OS and page-faults back in (measured: a third of the time in the kernel).
+//
+// Not when the standard library is linked dynamically (`-C prefer-dynamic`:
+// CI builds the tests so, for the notebooks' kernel to reuse the build; see
+// build.rs): the shared libstd allocates with the system allocator before
+// `main` and the program would free that memory with mimalloc (a crash at
+// start). That build runs on the system allocator, slower but the same.
+#[cfg(not(refnpr_dynamic_std))]
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 // mimalloc's own C entry point (linked in by the `mimalloc` crate, which
 // does not wrap it). `mi_option_purge_delay` is 15 in mimalloc v2 and v3's
 // `mi_option_e`.
+#[cfg(not(refnpr_dynamic_std))]
 unsafe extern "C" {
     fn mi_option_set(option: std::ffi::c_int, value: std::ffi::c_long);
 }
+#[cfg(not(refnpr_dynamic_std))]
 const MI_OPTION_PURGE_DELAY: std::ffi::c_int = 15;
 
 /// Never hand freed memory back to the OS. By default mimalloc purges it
@@ -739,5 +748,8 @@ const MI_OPTION_PURGE_DELAY: std::ffi::c_int = 15;
 /// purging). Peak memory is unchanged; memory is only reused.
 fn keep_freed_memory() {
     // SAFETY: sets a process-wide allocator option before any thread is started.
-    unsafe { mi_option_set(MI_OPTION_PURGE_DELAY, -1) };
+    #[cfg(not(refnpr_dynamic_std))]
+    unsafe {
+        mi_option_set(MI_OPTION_PURGE_DELAY, -1)
+    };
 }
