@@ -155,6 +155,11 @@ fn the_notebook_stages_chain_like_the_cli() {
     let reg = Registered::run(&photo, &twin, &RegisterParams::default(), t.path().join("r3")).unwrap();
     assert!(reg.report.registered_pixels > 0);
     assert_eq!(reg.overlays(&photo, &[0, 5]).unwrap().items.len(), 2);
+    let best = reg.most_covered(3);
+    let shares = &reg.report.fraction_per_view;
+    assert_eq!(best.len(), 3);
+    assert!(shares[best[0]] >= shares[best[1]] && shares[best[1]] >= shares[best[2]], "{best:?} {shares:?}");
+    assert!(shares.iter().enumerate().all(|(i, s)| best.contains(&i) || s <= &shares[best[2]]), "{best:?} {shares:?}");
     assert!(reg.coverage().unwrap().svg.contains("registered"));
     assert_eq!(reg.figures().rows.len(), 1);
 }

@@ -455,6 +455,17 @@ impl Registered {
         Ok(Gallery::new(items))
     }
 
+    /// The `n` training views R³ registered the largest share of, most
+    /// covered first (ties: the lower index first): the views worth an
+    /// overlay, where a fixed pick of views often lands on the far side.
+    pub fn most_covered(&self, n: usize) -> Vec<usize> {
+        let shares = &self.report.fraction_per_view;
+        let mut views: Vec<usize> = (0..shares.len()).collect();
+        views.sort_by(|&a, &b| shares[b].total_cmp(&shares[a]).then(a.cmp(&b)));
+        views.truncate(n);
+        views
+    }
+
     /// The share of each training view's surface pixels that R³ registered.
     pub fn coverage(&self) -> Result<Plot> {
         let points = self.report.fraction_per_view.iter().enumerate().map(|(i, &f)| (i as f32, 100.0 * f)).collect();
