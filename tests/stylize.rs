@@ -443,6 +443,58 @@ fn deferred_backprop_equals_direct_backprop() {
     assert!(err / norm < common::tol(1e-4), "relative error {}", err / norm);
 }
 
+/// The fused plain-Rust ray pass (`field::host_colour`, the CPU backends'
+/// path for L_ref and the refit) against the Burn graph and autodiff: the
+/// same colours and the same mean-squared-error gradient to 1e-5 relative,
+/// dense and sparse, on repeated and empty picks, with a target low enough
+/// that some samples' colours clamp at zero.
+#[test]
+fn host_ray_kernel_matches_the_graph() {
+    use refnpr::field::host_colour;
+    let d = common::backend().device();
+    let grid = random_grid(6);
+    let rays = test_camera(40).rays(None);
+    let bg = [1.0, 0.5, 0.0];
+    let samples = FrozenSamples::march(&Marcher::new(&grid), &rays, &MarchParams::default(), 0.0);
+    let sh = to_vec(grid.sh.clone());
+    let graph_rgb = render_plain(&grid.sh, &samples, bg, 4096);
+    let host_rgb = host_colour::render(&sh, &samples, None, bg);
+    let worst = graph_rgb.iter().zip(&host_rgb).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(worst < 1e-5, "colours differ by {worst}");
+    let mut rng = ChaCha8Rng::seed_from_u64(8);
+    let mut picks = vec![0, 0, samples.num_rays - 1];
+    picks.extend((0..3000).map(|_| rng.random_range(0..samples.num_rays)));
+    let target: Vec<f32> = (0..picks.len() * 3).map(|_| rng.random::<f32>() * 0.3).collect();
+    let cut = samples.subset(&picks);
+    let scale = 10.0 / (3.0 * picks.len() as f32);
+    let target_t = floats(target.clone(), [picks.len(), 3], &d);
+    for sparse in [false, true] {
+        let mut rows = if sparse { StepRows::sparse(grid.num_rows()) } else { StepRows::dense(grid.num_rows()) };
+        rows.add(&cut.corner_rows);
+        let graph = to_vec(chunked_gradient(&grid.sh, &cut, bg, 700, &rows, &|rgb, start, len| {
+            let diff = rgb - target_t.clone().narrow(0, start, len);
+            (diff.clone() * diff).sum() * scale
+        }));
+        let (host, loss) =
+            host_colour::colour_gradient(&sh, &samples, Some(&picks), bg, rows.len(), &rows.slot_fn(), |k, rgb| {
+                let e = [0, 1, 2].map(|c| rgb[c] - target[k * 3 + c]);
+                (e.map(|x| 2.0 * scale * x), scale * e.iter().map(|x| x * x).sum::<f32>())
+            });
+        let expected: f32 = (0..picks.len() * 3)
+            .map(|i| {
+                let e = host_rgb[picks[i / 3] * 3 + i % 3] - target[i];
+                scale * e * e
+            })
+            .sum();
+        assert!((loss as f32 - expected).abs() <= 1e-5 * expected, "loss {loss} vs {expected}");
+        assert_eq!(host.len(), graph.len());
+        let norm = graph.iter().map(|x| x * x).sum::<f32>().sqrt();
+        let err = graph.iter().zip(&host).map(|(a, b)| (a - b) * (a - b)).sum::<f32>().sqrt();
+        eprintln!("sparse {sparse}: host vs graph gradient, relative L2 error {:.2e}", err / norm);
+        assert!(norm > 0.0 && err / norm < 1e-5, "sparse {sparse}: relative error {}", err / norm);
+    }
+}
+
 fn tiny_photo_run(dir: &std::path::Path, steps: usize, num_train: usize) -> std::path::PathBuf {
     let scene = dir.join("scene");
     let opts = procedural::SceneOptions { seed: 2, size: 64, num_train, num_val: 1, num_test: 4 };
@@ -580,6 +632,41 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
 /// `refnpr stylize --registration DIR` reads what `refnpr register` wrote
 /// and gives the very field that registering again gives; a file made for
 /// another reference view is refused with the file named.
+/// `refnpr bench-stylize` on the tiny scene: every phase with steps is
+/// reported, with one entry per step, and the parts of a step (timed inside
+/// it) add up to no more than the step's own time.
+#[test]
+fn tiny_scene_bench_stylize_reports_each_phase_and_its_parts() {
+    let t = TempDir::new("stylize-bench");
+    let photo = tiny_photo_run(t.path(), 60, 6);
+    let case = write_case(t.path(), &t.path().join("scene"), 0, "");
+    let mut config = quick_config(1);
+    config.loss.reference_rays = 1024;
+    config.loss.registered_rays = 1024;
+    let r = refnpr::tools::bench::stylize_timing(
+        job(&photo, &case, &t.path().join("bench"), config, Method::RefNpr),
+        0.25,
+        2,
+        &refnpr::Quiet,
+    )
+    .unwrap();
+    let phases: Vec<&str> = r.phases.iter().map(|p| p.phase.as_str()).collect();
+    assert_eq!(phases, ["refit", "image_epochs", "smooth_update"]);
+    assert_eq!((r.phases[1].steps, r.phases[2].steps), (6, 6), "one image epoch and one smooth epoch of 6 views");
+    for p in &r.phases {
+        let parts: f64 = p.parts.iter().map(|x| x.seconds).sum();
+        assert!(p.median_step_seconds > 0.0 && p.mean_step_seconds > 0.0, "{p:?}");
+        assert!(parts <= p.mean_step_seconds * 1.001 + 1e-6, "parts {parts} s > step {} s", p.mean_step_seconds);
+        assert!(parts >= 0.5 * p.mean_step_seconds, "the parts miss most of the step: {p:?}");
+    }
+    let image: Vec<&str> = r.phases[1].parts.iter().map(|x| x.part.as_str()).collect();
+    for part in ["step_rows", "image_render", "image_losses_vgg", "image_rerender_grad", "reference_loss", "optimiser"]
+    {
+        assert!(image.contains(&part), "image steps lack {part}: {image:?}");
+    }
+    assert!(r.seconds.contains_key("content") && r.total_seconds > 0.0);
+}
+
 #[test]
 fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
     use refnpr::reference::case::ReferenceCase;

@@ -21,7 +21,7 @@ use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::{Method, StylizeJob};
 use refnpr::tools::info::SystemInfo;
 use refnpr::tools::{bench, demo, fuzz, paint};
-use refnpr::util::{config, files, image};
+use refnpr::util::{config, files, image, profile};
 use refnpr::{BackendKind, Console, Progress};
 
 #[derive(Parser)]
@@ -96,6 +96,34 @@ enum Command {
         /// Skip the onnxruntime yardstick (needs python3 with onnxruntime).
         #[arg(long)]
         no_onnxruntime: bool,
+        /// How the convolutions run (default: gemm on the CPU backends, graph on wgpu).
+        #[arg(long, value_enum)]
+        conv: Option<refnpr::vgg::VggConv>,
+        /// Also write the results as JSON here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+    /// A short stylization (a fraction of a refit epoch, one image epoch and, for Ref-NPR,
+    /// one smooth epoch) timed step by step: seconds per step and where they go, per phase.
+    BenchStylize {
+        #[command(flatten)]
+        inputs: PhotoAndCase,
+        /// Output run folder of the short stylization (stylize.json has every step's time).
+        #[arg(long)]
+        out: PathBuf,
+        /// TOML config, as for `stylize` (its schedule is shortened).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        #[arg(long, value_enum, default_value_t = Method::RefNpr)]
+        method: Method,
+        /// Ray epochs of the refit (a fraction of one: its steps all cost the same).
+        #[arg(long, default_value_t = 0.1)]
+        refit_epochs: f32,
+        /// Image epochs; with Ref-NPR and 2 or more, the last is the smooth update.
+        #[arg(long, default_value_t = 2)]
+        image_epochs: usize,
+        #[arg(long, value_enum)]
+        backend: Option<BackendKind>,
         /// Also write the results as JSON here.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -354,8 +382,56 @@ fn run() -> Result<()> {
             run_demo(&out, backend_or_env(backend, &progress)?, steps, epochs, &progress)
         }
         Command::Bench { backends, res, rays, repeats, json } => run_bench(backends, &res, rays, repeats, json),
-        Command::BenchVgg { backends, sizes, warmup, repeats, no_onnxruntime, json } => {
-            run_bench_vgg(backends, &sizes, warmup, repeats, no_onnxruntime, json)
+        Command::BenchVgg { backends, sizes, warmup, repeats, no_onnxruntime, conv, json } => {
+            run_bench_vgg(backends, &sizes, warmup, repeats, no_onnxruntime, conv, json)
+        }
+        Command::BenchStylize { inputs, out, config, method, refit_epochs, image_epochs, backend, json } => {
+            let config = match &config {
+                Some(p) => StylizeConfig::from_file(p)?,
+                None => StylizeConfig::default(),
+            };
+            let backend = backend_or_env(backend, &progress)?;
+            let PhotoAndCase { photo, reference: case, data } = inputs;
+            let job = StylizeJob {
+                photo,
+                case,
+                out,
+                config,
+                method,
+                backend,
+                style: None,
+                data,
+                registration: None,
+                render_test: false,
+                resume: false,
+            };
+            let r = bench::stylize_timing(job, refit_epochs, image_epochs, &progress)?;
+            println!(
+                "{} on {} ({} views, {}x{}), {}:",
+                r.method,
+                r.backend,
+                r.views,
+                r.image_size[0],
+                r.image_size[1],
+                r.seconds.iter().map(|(k, v)| format!("{k} {v:.1} s")).collect::<Vec<_>>().join(", ")
+            );
+            for p in &r.phases {
+                println!(
+                    "  {}: {} steps, median {:.3} s per step (mean {:.3}); per step: {}",
+                    p.phase,
+                    p.steps,
+                    p.median_step_seconds,
+                    p.mean_step_seconds,
+                    profile::describe(&p.parts)
+                );
+            }
+            if let Some(mb) = r.peak_rss_mb {
+                println!("  peak memory {mb:.0} MB");
+            }
+            if let Some(path) = json {
+                files::write_json(&path, &r)?;
+            }
+            Ok(())
         }
         Command::Reference { ckpt, view, out, data } => run_reference(&ckpt, &view, &out, data),
         Command::Register { inputs, out, params, overlays } => run_register(inputs, &out, &params, overlays, &progress),
@@ -539,6 +615,7 @@ fn run_bench_vgg(
     warmup: usize,
     repeats: usize,
     no_onnxruntime: bool,
+    conv: Option<refnpr::vgg::VggConv>,
     json: Option<PathBuf>,
 ) -> Result<()> {
     let mut sizes_wh = Vec::new();
@@ -567,7 +644,7 @@ fn run_bench_vgg(
     let mut results = Vec::new();
     for b in backends.unwrap_or(BackendKind::ALL.to_vec()) {
         for (&(w, h), ort_ms) in sizes_wh.iter().zip(&ort) {
-            let m = bench::vgg_timing(b, w, h, warmup, repeats)?;
+            let m = bench::vgg_timing(b, w, h, warmup, repeats, conv)?;
             let ratio = ort_ms.map(|o| format!("{:.2}", m.forward_backward_ms / o)).unwrap_or("-".into());
             let mem = m.forward_backward_peak_mb.map(|v| format!("{v:.0}")).unwrap_or("-".into());
             let size = format!("{w}x{h}");

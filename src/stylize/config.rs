@@ -36,6 +36,19 @@ pub enum Placement {
     Host,
 }
 
+/// What computes the ray losses' colours and gradients (L_ref, the refit's
+/// photo loss).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RayKernel {
+    /// `host` on the CPU backends, `graph` on a GPU.
+    Auto,
+    /// The Burn graph (`field::frozen::render_colour`) and autodiff.
+    Graph,
+    /// The fused plain-Rust pass (`field::host_colour`); CPU backends only.
+    Host,
+}
+
 /// What L_color's squared error is averaged over.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -289,6 +302,8 @@ pub struct StylizeConfig {
     /// to the host's, which gives each step its rows, so it takes up to
     /// `sample_cache_mb` of device memory).
     pub samples_on_device: Placement,
+    /// What computes the ray losses (`RayKernel`).
+    pub ray_kernel: RayKernel,
     /// Rays per chunk in rendering and the deferred re-render.
     pub render_chunk: usize,
     /// Query rows per chunk in the nearest-neighbour searches.
@@ -309,6 +324,7 @@ impl Default for StylizeConfig {
             min_sample_weight: 1e-5,
             sample_cache_mb: 2048,
             samples_on_device: Placement::Auto,
+            ray_kernel: RayKernel::Auto,
             render_chunk: 16384,
             search_chunk: 1024,
         }

@@ -69,6 +69,12 @@ impl StepRows {
         self.touched.as_ref().map_or(row, |s| s.local(row))
     }
 
+    /// Grid row -> buffer row as a plain function (shareable across threads).
+    pub fn slot_fn(&self) -> impl Fn(i32) -> i32 + Sync + '_ {
+        let touched = self.touched.as_ref();
+        move |row| touched.map_or(row, |s| s.local(row))
+    }
+
     /// The buffer rows of `grid_rows`, as an index tensor.
     pub fn slots(&self, grid_rows: &[i32], device: &burn::tensor::Device) -> Tensor<1, Int> {
         indices(grid_rows.iter().map(|&r| self.slot(r)).collect(), device)

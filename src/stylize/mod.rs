@@ -106,6 +106,9 @@ pub struct CurvePoint {
     pub colour: f32,
     pub content: f32,
     pub image_tv: f32,
+    /// Wall seconds the step took.
+    #[serde(default)]
+    pub seconds: f32,
 }
 
 impl CurvePoint {
@@ -120,6 +123,7 @@ impl CurvePoint {
             colour: 0.0,
             content: 0.0,
             image_tv: 0.0,
+            seconds: 0.0,
         }
     }
 }
@@ -148,6 +152,9 @@ pub struct StylizeReport {
     /// Host-device traffic per phase (`util::transfer`): the same phases,
     /// per step where a phase has steps, and the smooth update's new guides apart.
     pub transfers: BTreeMap<String, crate::util::transfer::PhaseTransfers>,
+    /// Where each phase's steps spent their time (`util::profile`): wall
+    /// seconds per part, summed over the phase's steps.
+    pub step_profiles: BTreeMap<String, Vec<crate::util::profile::PartTime>>,
     pub total_seconds: f64,
     pub peak_rss_mb: Option<f64>,
     pub final_losses: Option<CurvePoint>,

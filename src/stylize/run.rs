@@ -27,6 +27,7 @@ use crate::util::files;
 use crate::util::image::Image;
 use crate::util::lock::OutputLock;
 use crate::util::memory::{available_memory_bytes, peak_rss_mb};
+use crate::util::profile;
 use crate::util::progress::{Event, Phase, Progress, WarningLog};
 use crate::util::transfer::{self, PhaseTransfers};
 use crate::vgg::{self, VggLayer};
@@ -119,6 +120,9 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     for (phase, t) in &moved {
         progress.event(Event::Detail(t.describe(phase)));
     }
+    for (phase, parts) in &st.step_profiles {
+        progress.event(Event::Detail(format!("{phase} steps: {}", profile::describe(parts))));
+    }
 
     let post_colour_transfer = match style_colours.filter(|_| cfg.arf.post_transfer) {
         Some(style) => {
@@ -147,6 +151,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         total_seconds: started.elapsed().as_secs_f64(),
         seconds,
         transfers: moved,
+        step_profiles: std::mem::take(&mut st.step_profiles),
         peak_rss_mb: peak_rss_mb(),
         final_losses: st.curve.iter().rev().find(|p| p.phase != StepKind::Refit).cloned(),
         curve: std::mem::take(&mut st.curve),

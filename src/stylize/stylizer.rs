@@ -19,13 +19,14 @@ use crate::eval::metrics::psnr_from_mse;
 use crate::field::checkpoint::{self, CheckpointMeta};
 use crate::field::frozen::{self, DeviceSamples, FrozenSamples};
 use crate::field::grid::RadianceGrid;
+use crate::field::host_colour;
 use crate::field::march::{BlockOccupancy, MarchParams, Marcher};
 use crate::field::optim::{Rmsprop, log_lerp};
 use crate::reference::registration::RegistrationFile;
 use crate::scene::camera::{Camera, NdcParams, Ray, to_ndc};
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
-use crate::stylize::config::{LrSchedule, Placement, StylizeConfig, TransferPixels, WhiteOn};
+use crate::stylize::config::{LrSchedule, Placement, RayKernel, StylizeConfig, TransferPixels, WhiteOn};
 use crate::stylize::field::{
     DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, render_chunks,
     render_gathered,
@@ -37,6 +38,7 @@ use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferenceP
 use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
 use crate::util::diverged;
 use crate::util::image::Image;
+use crate::util::profile::{PartTime, StepProfile};
 use crate::util::progress::{Event, Phase, Progress};
 use crate::util::rng::{Stream, epoch_rng, step_rng};
 use crate::util::tensor::{floats, is_host_memory, scalar, to_vec};
@@ -204,6 +206,10 @@ pub struct Stylizer<'a> {
     smooth_sh: Option<Vec<f32>>,
     /// The image step of the last `resume.bin` written by this run.
     saved_at: Option<usize>,
+    /// Where the current phase's steps spend their time.
+    profile: StepProfile,
+    /// Each finished phase's step profile (`refit`, `image_epochs`, `smooth_update`).
+    pub step_profiles: std::collections::BTreeMap<String, Vec<PartTime>>,
 }
 
 /// What the image epochs are guided by: the TCM template (Ref-NPR), the
@@ -262,6 +268,8 @@ impl<'a> Stylizer<'a> {
             refit_sh: Vec::new(),
             smooth_sh: None,
             saved_at: None,
+            profile: StepProfile::default(),
+            step_profiles: Default::default(),
         };
         for r in 0..st.registration.references.len() {
             let samples = st.march_camera(&st.registration.references[r].camera);
@@ -332,6 +340,7 @@ impl<'a> Stylizer<'a> {
             let smooth = epoch >= smooth_start;
             if smooth && smooth_started.is_none() {
                 smooth_started = Some(std::time::Instant::now());
+                self.finish_profile("image_epochs");
                 // Resumed past this point: the guides come from the field as it was here.
                 let now = match (&self.smooth_sh, step < start) {
                     (Some(then), true) => {
@@ -359,7 +368,8 @@ impl<'a> Stylizer<'a> {
                     continue;
                 }
                 let m = transfer::measure(|| self.image_step(v, step, total_steps, &guidance, smooth));
-                let (point, moved) = (m.value?, m.moved);
+                let (mut point, moved) = (m.value?, m.moved);
+                point.seconds = m.seconds as f32;
                 diverged::check_loss(point.total, Phase::ImageEpochs, step + 1, || self.what_is_kept())?;
                 if smooth {
                     smooth_moved = smooth_moved.plus(moved);
@@ -386,6 +396,7 @@ impl<'a> Stylizer<'a> {
             }
         }
         let smooth_secs = smooth_started.map(|t| t.elapsed().as_secs_f64()).unwrap_or(0.0);
+        self.finish_profile(if smooth_started.is_some() { "smooth_update" } else { "image_epochs" });
         Ok(EpochCosts {
             image_seconds: started.elapsed().as_secs_f64() - smooth_secs,
             smooth_seconds: smooth_secs,
@@ -393,6 +404,15 @@ impl<'a> Stylizer<'a> {
             smooth_steps: PhaseTransfers::new(smooth_moved, (s.image_epochs - smooth_start) * views),
             smooth_guides: PhaseTransfers::new(guides_moved, 0),
         })
+    }
+
+    /// Files the step profile of the phase that just ended under `phase`.
+    fn finish_profile(&mut self, phase: &str) {
+        let parts = self.profile.parts();
+        self.profile.clear();
+        if !parts.is_empty() {
+            self.step_profiles.insert(phase.to_string(), parts);
+        }
     }
 
     /// What a diverged run leaves: its checkpoint is written only at its
@@ -479,12 +499,16 @@ impl<'a> Stylizer<'a> {
     ) -> Result<CurvePoint> {
         let s = &self.cfg.schedule;
         let mut rng = step_rng(self.cfg.seed, Stream::ImageStep, step);
-        let samples = self.view_samples(v);
-        let pseudo = if self.job.method == Method::RefNpr { self.pseudo_ray_batch(&mut rng) } else { Vec::new() };
-        let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
-        let corners: Vec<&[i32]> =
-            std::iter::once(&samples.corner_rows[..]).chain(pseudo.iter().flat_map(PseudoRays::corner_rows)).collect();
-        let rows = self.field.step_rows(self.cfg.optim.sparse, &corners, &tv);
+        let samples = self.profile.time("view_samples", || self.view_samples(v));
+        let (pseudo, tv, rows) = self.profile.time("step_rows", || {
+            let pseudo = if self.job.method == Method::RefNpr { self.pseudo_ray_batch(&mut rng) } else { Vec::new() };
+            let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
+            let corners: Vec<&[i32]> = std::iter::once(&samples.corner_rows[..])
+                .chain(pseudo.iter().flat_map(PseudoRays::corner_rows))
+                .collect();
+            let rows = self.field.step_rows(self.cfg.optim.sparse, &corners, &tv);
+            (pseudo, tv, rows)
+        });
         let (grad, parts) = self.image_gradient(
             v,
             &samples,
@@ -495,14 +519,16 @@ impl<'a> Stylizer<'a> {
             smooth,
         )?;
         drop(samples);
-        let (ref_grad, ref_loss) = self.reference_gradient(pseudo, &rows);
+        let (ref_grad, ref_loss) = self.profile.time("reference_loss", || self.reference_gradient(pseudo, &rows));
         let grad = match ref_grad {
             Some(g) => grad + g,
             None => grad,
         };
-        let grad = self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows);
+        let grad = self.profile.time("sh_tv", || self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows));
         let lr = self.learning_rate(log_lerp(s.lr, s.lr_final, step as f32 / total_steps.max(1) as f32));
+        let started = std::time::Instant::now();
         self.optimiser_step(grad, rows, lr);
+        self.profile.add("optimiser", started.elapsed().as_secs_f64());
         Ok(CurvePoint {
             phase: if smooth { StepKind::Smooth } else { StepKind::Image },
             step,
@@ -512,6 +538,7 @@ impl<'a> Stylizer<'a> {
             colour: parts.colour,
             content: parts.content,
             image_tv: parts.image_tv,
+            seconds: 0.0,
         })
     }
 
@@ -642,12 +669,14 @@ impl<'a> Stylizer<'a> {
             self.field.reset_optimiser();
         }
         for step in 0..steps {
+            let started = std::time::Instant::now();
             let mse = self.refit_step(step, &rays, &colours);
             diverged::check_loss(mse, Phase::Refit, step + 1, || self.what_is_kept())?;
             let message = format!("mse {mse:.5} psnr {:.2}", psnr_from_mse(mse));
             progress.event(Event::Step { phase: Phase::Refit, done: step + 1, total: steps, message });
-            self.curve.push(CurvePoint::refit(step, mse));
+            self.curve.push(CurvePoint { seconds: started.elapsed().as_secs_f32(), ..CurvePoint::refit(step, mse) });
         }
+        self.finish_profile("refit");
         Ok(())
     }
 
@@ -658,15 +687,61 @@ impl<'a> Stylizer<'a> {
         let mut rng = step_rng(self.cfg.seed, Stream::Refit, step);
         let picks: Vec<usize> = (0..s.ray_batch).map(|_| rng.random_range(0..rays.len())).collect();
         let batch_rays: Vec<Ray> = picks.iter().map(|&i| rays[i]).collect();
-        let target = floats(picks.iter().flat_map(|&i| colours[i]).collect(), [picks.len(), 3], &self.device);
-        let samples = self.march_rays(&batch_rays);
-        let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
-        let rows = self.field.step_rows(self.cfg.optim.sparse, &[&samples.corner_rows], &tv);
-        let (grad, mse) = self.mse_gradient(RaySet::Host(&samples), &rows, target, 1.0);
-        let grad = self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows);
+        let target: Vec<f32> = picks.iter().flat_map(|&i| colours[i]).collect();
+        let samples = self.profile.time("march", || self.march_rays(&batch_rays));
+        let (tv, rows) = self.profile.time("step_rows", || {
+            let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
+            let rows = self.field.step_rows(self.cfg.optim.sparse, &[&samples.corner_rows], &tv);
+            (tv, rows)
+        });
+        let (grad, mse) = self.profile.time("photo_loss", || match self.host_kernel() {
+            true => self.host_mse_gradient(&self.host_sh(), &samples, None, &target, &rows, 1.0),
+            false => {
+                let target = floats(target, [picks.len(), 3], &self.device);
+                self.mse_gradient(RaySet::Host(&samples), &rows, target, 1.0)
+            }
+        });
+        let grad = self.profile.time("sh_tv", || self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows));
         let lr = self.learning_rate(s.lr_refit);
+        let started = std::time::Instant::now();
         self.optimiser_step(grad, rows, lr);
+        self.profile.add("optimiser", started.elapsed().as_secs_f64());
         mse
+    }
+
+    /// Whether the ray losses run on `field::host_colour` (`ray_kernel`).
+    fn host_kernel(&self) -> bool {
+        match self.cfg.ray_kernel {
+            RayKernel::Auto => is_host_memory(&self.device),
+            RayKernel::Host => true,
+            RayKernel::Graph => false,
+        }
+    }
+
+    /// The SH grid as host numbers (for `field::host_colour`).
+    fn host_sh(&self) -> Vec<f32> {
+        to_vec(self.field.grid.sh.clone())
+    }
+
+    /// [`mse_gradient`](Self::mse_gradient) by `field::host_colour`: `rays`
+    /// of `samples` (all when None), `target` interleaved RGB per ray.
+    fn host_mse_gradient(
+        &self,
+        sh: &[f32],
+        samples: &FrozenSamples,
+        rays: Option<&[usize]>,
+        target: &[f32],
+        rows: &StepRows,
+        weight: f32,
+    ) -> (Tensor<2>, f32) {
+        let n = rays.map_or(samples.num_rays, <[usize]>::len);
+        let scale = weight / (3.0 * n.max(1) as f32);
+        let (grad, loss) =
+            host_colour::colour_gradient(sh, samples, rays, self.background, rows.len(), &rows.slot_fn(), |k, rgb| {
+                let d = [0, 1, 2].map(|c| rgb[c] - target[k * 3 + c]);
+                (d.map(|x| 2.0 * scale * x), scale * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
+            });
+        (floats(grad, [rows.len(), 3], &self.device), loss as f32)
     }
 
     /// `weight` x the mean squared error of the rays' colours to `target`
@@ -786,13 +861,23 @@ impl<'a> Stylizer<'a> {
     fn reference_gradient(&self, groups: Vec<PseudoRays>, rows: &StepRows) -> (Option<Tensor<2>>, f32) {
         let mut total: Option<Tensor<2>> = None;
         let mut value = 0.0;
+        let sh = if self.host_kernel() && !groups.is_empty() { Some(self.host_sh()) } else { None };
         for group in groups {
-            let target = floats(group.target, [group.rays.len(), 3], &self.device);
-            let (g, v) = match group.on_device {
-                Some(lists) => {
+            let (g, v) = match (&sh, group.on_device) {
+                (Some(sh), _) => self.host_mse_gradient(
+                    sh,
+                    &group.lists,
+                    Some(&group.rays),
+                    &group.target,
+                    rows,
+                    self.cfg.loss.reference,
+                ),
+                (None, Some(lists)) => {
+                    let target = floats(group.target, [group.rays.len(), 3], &self.device);
                     self.mse_gradient(RaySet::Gathered(lists, &group.rays), rows, target, self.cfg.loss.reference)
                 }
-                None => {
+                (None, None) => {
+                    let target = floats(group.target, [group.rays.len(), 3], &self.device);
                     let samples = group.lists.subset(&group.rays);
                     self.mse_gradient(RaySet::Host(&samples), rows, target, self.cfg.loss.reference)
                 }
@@ -825,6 +910,7 @@ impl<'a> Stylizer<'a> {
         // chunks' sample lists, gathered there (the view's lists are kept on
         // the device) or uploaded, once for both passes.
         let sh = &self.field.grid.sh;
+        let started = std::time::Instant::now();
         let gathered: Option<Vec<_>> = self.views_on_device[v].as_ref().map(|lists| {
             let all: Vec<usize> = (0..samples.num_rays).collect();
             lists.gather_chunks(&all, self.cfg.render_chunk).collect()
@@ -837,18 +923,21 @@ impl<'a> Stylizer<'a> {
             Some(chunks) => render_gathered(sh, chunks, self.background),
             None => render_chunks(sh, &uploaded, self.background),
         };
+        self.profile.add("image_render", started.elapsed().as_secs_f64());
         // 2. Image losses on a leaf image, gradient with respect to the image.
+        let started = std::time::Instant::now();
         let image = planar_image(rgb, w, h).autodiff().require_grad();
         let (loss, parts) = self.image_loss(image.clone(), guide, template, style_bank, smooth)?;
         let grads = loss.backward();
         let Some(g) = image.grad(&grads) else { bail!("the image losses do not depend on the image") };
         let g = interleaved(g);
+        self.profile.add("image_losses_vgg", started.elapsed().as_secs_f64());
         // 3. Chunked re-render with autodiff, injecting the image gradient.
         let inject = |rgb: Tensor<2>, start: usize, len: usize| (rgb * g.clone().narrow(0, start, len)).sum();
-        let grad = match gathered {
+        let grad = self.profile.time("image_rerender_grad", || match gathered {
             Some(chunks) => gathered_gradient(sh, chunks, self.background, rows, &inject),
             None => chunks_gradient(sh, &uploaded, self.background, rows, &inject),
-        };
+        });
         Ok((grad, parts))
     }
 

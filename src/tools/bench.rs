@@ -105,6 +105,8 @@ pub struct VggBenchResult {
     /// Peak resident memory during one forward + backward, above the resident
     /// memory before it (Linux; None elsewhere).
     pub forward_backward_peak_mb: Option<f64>,
+    /// How the convolutions ran.
+    pub conv: crate::vgg::VggConv,
     pub warmup: usize,
     pub repeats: usize,
 }
@@ -118,6 +120,7 @@ pub fn vgg_timing(
     height: usize,
     warmup: usize,
     repeats: usize,
+    conv: Option<crate::vgg::VggConv>,
 ) -> Result<VggBenchResult> {
     anyhow::ensure!(repeats >= 1, "repeats must be at least 1");
     use crate::vgg::{Vgg16, VggLayer};
@@ -125,8 +128,9 @@ pub fn vgg_timing(
     // Forward on the plain backend, forward + backward on its autodiff twin.
     let plain = backend.device();
     let device = backend.autodiff_device();
-    let vgg_plain = Vgg16::load(&plain);
-    let vgg = Vgg16::load(&device);
+    let conv = conv.unwrap_or(crate::vgg::VggConv::default_for(&plain));
+    let vgg_plain = Vgg16::load(&plain).with_conv(conv);
+    let vgg = Vgg16::load(&device).with_conv(conv);
     plain.seed(0);
     let image_plain: Tensor<4> = Tensor::random([1, 3, height, width], Distribution::Uniform(0.0, 1.0), &plain);
     let image = Tensor::<4>::from_data(image_plain.to_data(), &device);
@@ -167,6 +171,7 @@ pub fn vgg_timing(
         forward_ms: median(fwd),
         forward_backward_ms: median(fb),
         forward_backward_peak_mb: peak,
+        conv,
         warmup,
         repeats,
     })
@@ -191,4 +196,84 @@ pub fn onnxruntime_forward_ms(width: usize, height: usize, repeats: usize) -> Re
     }
     let v: serde_json::Value = serde_json::from_slice(&out.stdout)?;
     v["forward_ms_median"].as_f64().ok_or_else(|| anyhow::anyhow!("unexpected output from {}", script.display()))
+}
+
+/// One phase of a short stylization: its steps and what one costs.
+#[derive(Debug, Clone, Serialize)]
+pub struct PhaseCost {
+    /// `refit`, `image_epochs` or `smooth_update`.
+    pub phase: String,
+    pub steps: usize,
+    /// Median and mean wall seconds of one step.
+    pub median_step_seconds: f64,
+    pub mean_step_seconds: f64,
+    /// Mean seconds per step of each part of a step (`util::profile`).
+    pub parts: Vec<crate::util::profile::PartTime>,
+}
+
+/// `refnpr bench-stylize`: a short stylization's cost per step and phase.
+#[derive(Debug, Clone, Serialize)]
+pub struct StylizeBenchResult {
+    pub method: String,
+    pub backend: String,
+    pub views: usize,
+    pub image_size: [usize; 2],
+    pub phases: Vec<PhaseCost>,
+    /// Seconds of the whole phases (registration, refit, content, image_epochs, smooth_update).
+    pub seconds: std::collections::BTreeMap<String, f64>,
+    pub total_seconds: f64,
+    pub peak_rss_mb: Option<f64>,
+}
+
+/// Runs `job` shortened to `refit_epochs` ray epochs and `image_epochs`
+/// image epochs (Ref-NPR: the last of them the smooth update), no resume
+/// points and no test renders, and reports the cost of one step of each
+/// phase. Costs per step do not depend on the schedule's length, so the
+/// full schedule's time is about steps x these figures.
+pub fn stylize_timing(
+    mut job: crate::stylize::StylizeJob,
+    refit_epochs: f32,
+    image_epochs: usize,
+    progress: &dyn crate::util::progress::Progress,
+) -> Result<StylizeBenchResult> {
+    use crate::stylize::StepKind;
+    anyhow::ensure!(image_epochs >= 1, "bench-stylize needs at least one image epoch");
+    anyhow::ensure!(refit_epochs > 0.0, "bench-stylize needs a refit (--refit-epochs > 0)");
+    let s = &mut job.config.schedule;
+    s.ray_epochs = refit_epochs;
+    s.image_epochs = image_epochs;
+    s.smooth_fraction = if image_epochs >= 2 { 1.0 / image_epochs as f32 } else { 0.0 };
+    s.checkpoint_every = 0;
+    job.render_test = false;
+    job.config.validate()?;
+    let report = crate::stylize::run::run_stylize(&job, progress)?;
+    let kinds = [("refit", StepKind::Refit), ("image_epochs", StepKind::Image), ("smooth_update", StepKind::Smooth)];
+    let phases = kinds
+        .iter()
+        .filter_map(|(name, kind)| {
+            let times: Vec<f64> = report.curve.iter().filter(|p| p.phase == *kind).map(|p| p.seconds as f64).collect();
+            let parts = report.step_profiles.get(*name).filter(|_| !times.is_empty())?;
+            let steps = times.len();
+            Some(PhaseCost {
+                phase: name.to_string(),
+                steps: times.len(),
+                median_step_seconds: median(times.clone()),
+                mean_step_seconds: times.iter().sum::<f64>() / steps as f64,
+                parts: parts
+                    .iter()
+                    .map(|p| crate::util::profile::PartTime { seconds: p.seconds / steps as f64, ..p.clone() })
+                    .collect(),
+            })
+        })
+        .collect();
+    Ok(StylizeBenchResult {
+        method: report.method.to_string(),
+        backend: report.backend,
+        views: report.views,
+        image_size: report.image_size,
+        phases,
+        seconds: report.seconds,
+        total_seconds: report.total_seconds,
+        peak_rss_mb: report.peak_rss_mb,
+    })
 }

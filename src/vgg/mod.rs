@@ -26,6 +26,7 @@ pub use crate::util::tensor::image_tensor;
 use crate::vgg::model::Model;
 
 pub mod features;
+pub mod gemm;
 pub mod model;
 
 /// SHA-256 over the 13 convolutions' weights and biases (float32 LE, in
@@ -180,10 +181,29 @@ impl FeatureMaps {
     }
 }
 
+/// How the forward pass runs the convolutions.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum VggConv {
+    /// The imported ONNX graph as burn-onnx generated it (Burn's conv2d).
+    Graph,
+    /// The same graph and weights, each convolution one matrix product
+    /// (`vgg::gemm`), stopping after the deepest requested layer.
+    Gemm,
+}
+
+impl VggConv {
+    /// The graph on every backend (measured faster than `Gemm` on flex).
+    pub fn default_for(_device: &Device) -> Self {
+        VggConv::Graph
+    }
+}
+
 /// The VGG16 feature stack (13 convolutions, ImageNet weights).
 #[derive(Debug, Clone)]
 pub struct Vgg16 {
     model: Model,
+    conv: VggConv,
 }
 
 impl Vgg16 {
@@ -192,14 +212,23 @@ impl Vgg16 {
     pub fn load(device: &Device) -> Self {
         let model = Model::from_embedded(device).no_grad();
         crate::util::transfer::record_upload(model.num_params() * 4);
-        Self { model }
+        Self { model, conv: VggConv::default_for(device) }
     }
 
     /// The same architecture with Burn's default random initialisation under
     /// `seed`: the control for tests that must prove the real weights matter.
     pub fn random(device: &Device, seed: u64) -> Self {
         device.seed(seed);
-        Self { model: Model::new(device).no_grad() }
+        Self { model: Model::new(device).no_grad(), conv: VggConv::default_for(device) }
+    }
+
+    /// The same weights with the convolutions run as `conv` says.
+    pub fn with_conv(self, conv: VggConv) -> Self {
+        Self { conv, ..self }
+    }
+
+    pub fn conv(&self) -> VggConv {
+        self.conv
     }
 
     /// SHA-256 of the loaded convolution weights, in the layout of
@@ -244,12 +273,16 @@ impl Vgg16 {
         if h < MIN_SIDE || w < MIN_SIDE {
             return Err(VggError::TooSmall { width: w, height: h });
         }
-        let outs = self.model.forward(image);
-        let all: [Tensor<4>; 13] =
-            [outs.0, outs.1, outs.2, outs.3, outs.4, outs.5, outs.6, outs.7, outs.8, outs.9, outs.10, outs.11, outs.12];
+        let all: Vec<Option<Tensor<4>>> = match self.conv {
+            VggConv::Graph => {
+                let o = self.model.forward(image);
+                [o.0, o.1, o.2, o.3, o.4, o.5, o.6, o.7, o.8, o.9, o.10, o.11, o.12].into_iter().map(Some).collect()
+            }
+            VggConv::Gemm => gemm::forward(&self.model, image, layers),
+        };
         let mut maps = BTreeMap::new();
         for (layer, map) in VggLayer::ALL.into_iter().zip(all) {
-            if layers.contains(&layer) {
+            if let (true, Some(map)) = (layers.contains(&layer), map) {
                 maps.insert(layer, map);
             }
         }

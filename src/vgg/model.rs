@@ -1,3 +1,36 @@
 //! The burn-onnx generated VGG16 feature stack (see build.rs and models/).
 #![allow(clippy::all, unused)]
 include!(concat!(env!("OUT_DIR"), "/model/vgg16_features.rs"));
+
+/// The imported graph's pieces, in network order, for a forward pass that
+/// runs the same operations with its own convolution (`crate::vgg::gemm`).
+impl Model {
+    /// The input scaling (x 255) and the Caffe mean subtracted after it.
+    pub(crate) fn input_constants(&self) -> (Tensor<1>, Tensor<4>) {
+        (self.constant1.val(), self.constant2.val())
+    }
+
+    /// The 13 convolutions.
+    pub(crate) fn convs(&self) -> [&Conv2d; 13] {
+        [
+            &self.conv2d1,
+            &self.conv2d2,
+            &self.conv2d3,
+            &self.conv2d4,
+            &self.conv2d5,
+            &self.conv2d6,
+            &self.conv2d7,
+            &self.conv2d8,
+            &self.conv2d9,
+            &self.conv2d10,
+            &self.conv2d11,
+            &self.conv2d12,
+            &self.conv2d13,
+        ]
+    }
+
+    /// The 4 max-pools (after relu1_2, relu2_2, relu3_3, relu4_3).
+    pub(crate) fn pools(&self) -> [&MaxPool2d; 4] {
+        [&self.maxpool2d1, &self.maxpool2d2, &self.maxpool2d3, &self.maxpool2d4]
+    }
+}
