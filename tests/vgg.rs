@@ -13,7 +13,7 @@ use refnpr::scene::data::procedural::{ID_BACKGROUND, Scene};
 use refnpr::util::npy;
 use refnpr::util::tensor::{floats, to_vec};
 use refnpr::vgg::features::{multi_block_descriptors, nearest_by_dot};
-use refnpr::vgg::{Vgg16, VggConv, VggError, VggLayer, image_tensor};
+use refnpr::vgg::{Vgg16, VggError, VggForward, VggLayer, image_tensor};
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
@@ -164,21 +164,21 @@ fn input_gradient_matches_finite_differences() {
     assert!(grad.iter().any(|g| g.abs() > 1e-3), "gradient is not all zero");
 }
 
-/// The two ways of running the convolutions (the imported graph's conv2d,
-/// and one matrix product per convolution) agree on every layer's forward
-/// value and on the gradient of the loss layers with respect to the image,
-/// to 1e-4 relative (1e-3 on wgpu), on a batch of two non-square images; and
-/// the matrix-product pass returns only the layers asked for.
+/// The staged forward pass (the imported graph's modules one by one,
+/// stopping after the deepest requested layer) agrees with the generated
+/// `forward` on every layer's value and on the gradient of the loss layers
+/// with respect to the image, to 1e-4 relative (1e-3 on wgpu), on a batch
+/// of two non-square images; and it returns only the layers asked for.
 #[test]
-fn gemm_convolutions_match_the_imported_graph() {
+fn staged_forward_matches_the_imported_graph() {
     let device = common::backend().autodiff_device();
-    let graph = Vgg16::load(&device).with_conv(VggConv::Graph);
-    let gemm = graph.clone().with_conv(VggConv::Gemm);
+    let graph = Vgg16::load(&device).with_forward(VggForward::Graph);
+    let staged = graph.clone().with_forward(VggForward::Staged);
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let (h, w) = (40, 52);
     let image = floats((0..2 * 3 * h * w).map(|_| rng.random::<f32>()).collect(), [2, 3, h, w], &device);
     let a = graph.features(image.clone(), &VggLayer::ALL).unwrap();
-    let b = gemm.features(image.clone(), &VggLayer::ALL).unwrap();
+    let b = staged.features(image.clone(), &VggLayer::ALL).unwrap();
     for layer in VggLayer::ALL {
         let err = max_rel_err(&to_vec(b.get(layer).clone()), &to_vec(a.get(layer).clone()));
         println!("{layer}: forward max rel err {err:.2e}");
@@ -197,12 +197,12 @@ fn gemm_convolutions_match_the_imported_graph() {
             .unwrap();
         to_vec(x.grad(&loss.backward()).expect("gradient reaches the image"))
     };
-    let (ga, gb) = (gradient(&graph), gradient(&gemm));
+    let (ga, gb) = (gradient(&graph), gradient(&staged));
     let err = max_rel_err(&gb, &ga);
     println!("image gradient: max rel err {err:.2e}");
     assert!(ga.iter().any(|g| g.abs() > 0.0), "the gradient is zero");
     assert!(err <= common::tol(1e-4), "image gradient: max rel err {err:.2e}");
-    let tcm = gemm.features(image, &VggLayer::TCM).unwrap();
+    let tcm = staged.features(image, &VggLayer::TCM).unwrap();
     assert_eq!(tcm.layers().collect::<Vec<_>>(), VggLayer::TCM.to_vec());
 }
 

@@ -96,9 +96,9 @@ enum Command {
         /// Skip the onnxruntime yardstick (needs python3 with onnxruntime).
         #[arg(long)]
         no_onnxruntime: bool,
-        /// How the convolutions run (default: gemm on the CPU backends, graph on wgpu).
+        /// How the forward pass runs (default: staged).
         #[arg(long, value_enum)]
-        conv: Option<refnpr::vgg::VggConv>,
+        forward: Option<refnpr::vgg::VggForward>,
         /// Also write the results as JSON here.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -382,8 +382,8 @@ fn run() -> Result<()> {
             run_demo(&out, backend_or_env(backend, &progress)?, steps, epochs, &progress)
         }
         Command::Bench { backends, res, rays, repeats, json } => run_bench(backends, &res, rays, repeats, json),
-        Command::BenchVgg { backends, sizes, warmup, repeats, no_onnxruntime, conv, json } => {
-            run_bench_vgg(backends, &sizes, warmup, repeats, no_onnxruntime, conv, json)
+        Command::BenchVgg { backends, sizes, warmup, repeats, no_onnxruntime, forward, json } => {
+            run_bench_vgg(backends, &sizes, warmup, repeats, no_onnxruntime, forward, json)
         }
         Command::BenchStylize { inputs, out, config, method, refit_epochs, image_epochs, backend, json } => {
             let config = match &config {
@@ -615,7 +615,7 @@ fn run_bench_vgg(
     warmup: usize,
     repeats: usize,
     no_onnxruntime: bool,
-    conv: Option<refnpr::vgg::VggConv>,
+    forward: Option<refnpr::vgg::VggForward>,
     json: Option<PathBuf>,
 ) -> Result<()> {
     let mut sizes_wh = Vec::new();
@@ -644,7 +644,7 @@ fn run_bench_vgg(
     let mut results = Vec::new();
     for b in backends.unwrap_or(BackendKind::ALL.to_vec()) {
         for (&(w, h), ort_ms) in sizes_wh.iter().zip(&ort) {
-            let m = bench::vgg_timing(b, w, h, warmup, repeats, conv)?;
+            let m = bench::vgg_timing(b, w, h, warmup, repeats, forward)?;
             let ratio = ort_ms.map(|o| format!("{:.2}", m.forward_backward_ms / o)).unwrap_or("-".into());
             let mem = m.forward_backward_peak_mb.map(|v| format!("{v:.0}")).unwrap_or("-".into());
             let size = format!("{w}x{h}");

@@ -49,17 +49,20 @@ where
         .map(|p| {
             let mut grad = vec![0.0f32; slots * 3];
             let mut total = 0.0f64;
+            // The ray's interpolated coefficients, kept from the colour for the gradient.
+            let mut coefficients: Vec<[f32; 3]> = Vec::new();
             for k in p * per_part..((p + 1) * per_part).min(n) {
                 let r = rays.map_or(k, |rs| rs[k]);
                 let (lo, hi) = (samples.ray_offsets[r] as usize, samples.ray_offsets[r + 1] as usize);
-                let rgb = ray_colour(sh, samples, lo, hi, samples.final_transmittance[r], background);
+                coefficients.clear();
+                coefficients.extend((lo..hi).map(|s| interpolate(sh, samples, s)));
+                let rgb = composite(samples, lo, &coefficients, samples.final_transmittance[r], background);
                 let (d_rgb, value) = loss(k, rgb);
                 total += value as f64;
                 if d_rgb == [0.0; 3] {
                     continue;
                 }
-                for s in lo..hi {
-                    let pre = interpolate(sh, samples, s);
+                for (s, pre) in (lo..hi).zip(&coefficients) {
                     let w = samples.weight[s] * sh::C0;
                     for (c, &pre_c) in pre.iter().enumerate() {
                         // d/d(coefficient) of max(C0 x + 0.5, 0), zero where clamped.
@@ -128,6 +131,24 @@ fn ray_colour(
     let mut rgb = background.map(|b| b * transmittance);
     for s in lo..hi {
         let pre = interpolate(sh, samples, s);
+        for c in 0..3 {
+            rgb[c] += samples.weight[s] * (sh::C0 * pre[c] + 0.5).max(0.0);
+        }
+    }
+    rgb
+}
+
+/// The colour of a ray whose samples, from `lo` on, have the interpolated
+/// coefficients `coefficients`.
+fn composite(
+    samples: &FrozenSamples,
+    lo: usize,
+    coefficients: &[[f32; 3]],
+    transmittance: f32,
+    background: [f32; 3],
+) -> [f32; 3] {
+    let mut rgb = background.map(|b| b * transmittance);
+    for (s, pre) in (lo..).zip(coefficients) {
         for c in 0..3 {
             rgb[c] += samples.weight[s] * (sh::C0 * pre[c] + 0.5).max(0.0);
         }

@@ -906,6 +906,9 @@ impl<'a> Stylizer<'a> {
     ) -> Result<(Tensor<2>, ImageLosses)> {
         let cam = &self.dataset.train[v].camera;
         let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
+        if self.host_kernel() {
+            return self.host_image_gradient(samples, rows, (w, h), guide, template, style_bank, smooth);
+        }
         // 1. Full image, no autodiff; it stays on the device, and so do the
         // chunks' sample lists, gathered there (the view's lists are kept on
         // the device) or uploaded, once for both passes.
@@ -939,6 +942,36 @@ impl<'a> Stylizer<'a> {
             None => chunks_gradient(sh, &uploaded, self.background, rows, &inject),
         });
         Ok((grad, parts))
+    }
+
+    /// [`image_gradient`](Self::image_gradient) with the render and the
+    /// re-render by `field::host_colour` (the same sums, no upload).
+    #[allow(clippy::too_many_arguments)]
+    fn host_image_gradient(
+        &self,
+        samples: &FrozenSamples,
+        rows: &StepRows,
+        (w, h): (usize, usize),
+        guide: &ViewGuide,
+        template: Option<&Template>,
+        style_bank: Option<&Tensor<2>>,
+        smooth: bool,
+    ) -> Result<(Tensor<2>, ImageLosses)> {
+        let sh = self.profile.time("image_render", || self.host_sh());
+        let rgb = self.profile.time("image_render", || host_colour::render(&sh, samples, None, self.background));
+        let started = std::time::Instant::now();
+        let image = planar_image(floats(rgb, [w * h, 3], &self.device), w, h).autodiff().require_grad();
+        let (loss, parts) = self.image_loss(image.clone(), guide, template, style_bank, smooth)?;
+        let grads = loss.backward();
+        let Some(g) = image.grad(&grads) else { bail!("the image losses do not depend on the image") };
+        let g = to_vec(interleaved(g));
+        self.profile.add("image_losses_vgg", started.elapsed().as_secs_f64());
+        let (grad, _) = self.profile.time("image_rerender_grad", || {
+            host_colour::colour_gradient(&sh, samples, None, self.background, rows.len(), &rows.slot_fn(), |k, _| {
+                ([g[k * 3], g[k * 3 + 1], g[k * 3 + 2]], 0.0)
+            })
+        });
+        Ok((floats(grad, [rows.len(), 3], &self.device), parts))
     }
 
     fn image_loss(

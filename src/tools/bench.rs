@@ -105,8 +105,8 @@ pub struct VggBenchResult {
     /// Peak resident memory during one forward + backward, above the resident
     /// memory before it (Linux; None elsewhere).
     pub forward_backward_peak_mb: Option<f64>,
-    /// How the convolutions ran.
-    pub conv: crate::vgg::VggConv,
+    /// How the forward pass ran.
+    pub forward: crate::vgg::VggForward,
     pub warmup: usize,
     pub repeats: usize,
 }
@@ -120,7 +120,7 @@ pub fn vgg_timing(
     height: usize,
     warmup: usize,
     repeats: usize,
-    conv: Option<crate::vgg::VggConv>,
+    forward: Option<crate::vgg::VggForward>,
 ) -> Result<VggBenchResult> {
     anyhow::ensure!(repeats >= 1, "repeats must be at least 1");
     use crate::vgg::{Vgg16, VggLayer};
@@ -128,9 +128,9 @@ pub fn vgg_timing(
     // Forward on the plain backend, forward + backward on its autodiff twin.
     let plain = backend.device();
     let device = backend.autodiff_device();
-    let conv = conv.unwrap_or(crate::vgg::VggConv::default_for(&plain));
-    let vgg_plain = Vgg16::load(&plain).with_conv(conv);
-    let vgg = Vgg16::load(&device).with_conv(conv);
+    let forward = forward.unwrap_or(crate::vgg::VggForward::default_for(&plain));
+    let vgg_plain = Vgg16::load(&plain).with_forward(forward);
+    let vgg = Vgg16::load(&device).with_forward(forward);
     plain.seed(0);
     let image_plain: Tensor<4> = Tensor::random([1, 3, height, width], Distribution::Uniform(0.0, 1.0), &plain);
     let image = Tensor::<4>::from_data(image_plain.to_data(), &device);
@@ -171,7 +171,7 @@ pub fn vgg_timing(
         forward_ms: median(fwd),
         forward_backward_ms: median(fb),
         forward_backward_peak_mb: peak,
-        conv,
+        forward,
         warmup,
         repeats,
     })

@@ -26,8 +26,8 @@ pub use crate::util::tensor::image_tensor;
 use crate::vgg::model::Model;
 
 pub mod features;
-pub mod gemm;
 pub mod model;
+pub mod staged;
 
 /// SHA-256 over the 13 convolutions' weights and biases (float32 LE, in
 /// network order, weight before bias): the value `models/make_vgg16_onnx.py`
@@ -181,21 +181,21 @@ impl FeatureMaps {
     }
 }
 
-/// How the forward pass runs the convolutions.
+/// How the forward pass runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
-pub enum VggConv {
-    /// The imported ONNX graph as burn-onnx generated it (Burn's conv2d).
+pub enum VggForward {
+    /// The imported ONNX graph's generated `forward` (all 13 layers).
     Graph,
-    /// The same graph and weights, each convolution one matrix product
-    /// (`vgg::gemm`), stopping after the deepest requested layer.
-    Gemm,
+    /// The same modules in the same order, stopping after the deepest
+    /// requested layer (`vgg::staged`).
+    Staged,
 }
 
-impl VggConv {
-    /// The graph on every backend (measured faster than `Gemm` on flex).
+impl VggForward {
+    /// Staged on every backend: the same numbers, less work.
     pub fn default_for(_device: &Device) -> Self {
-        VggConv::Graph
+        VggForward::Staged
     }
 }
 
@@ -203,7 +203,7 @@ impl VggConv {
 #[derive(Debug, Clone)]
 pub struct Vgg16 {
     model: Model,
-    conv: VggConv,
+    forward: VggForward,
 }
 
 impl Vgg16 {
@@ -212,23 +212,19 @@ impl Vgg16 {
     pub fn load(device: &Device) -> Self {
         let model = Model::from_embedded(device).no_grad();
         crate::util::transfer::record_upload(model.num_params() * 4);
-        Self { model, conv: VggConv::default_for(device) }
+        Self { model, forward: VggForward::default_for(device) }
     }
 
     /// The same architecture with Burn's default random initialisation under
     /// `seed`: the control for tests that must prove the real weights matter.
     pub fn random(device: &Device, seed: u64) -> Self {
         device.seed(seed);
-        Self { model: Model::new(device).no_grad(), conv: VggConv::default_for(device) }
+        Self { model: Model::new(device).no_grad(), forward: VggForward::default_for(device) }
     }
 
-    /// The same weights with the convolutions run as `conv` says.
-    pub fn with_conv(self, conv: VggConv) -> Self {
-        Self { conv, ..self }
-    }
-
-    pub fn conv(&self) -> VggConv {
-        self.conv
+    /// The same weights, the forward pass run as `forward` says.
+    pub fn with_forward(self, forward: VggForward) -> Self {
+        Self { forward, ..self }
     }
 
     /// SHA-256 of the loaded convolution weights, in the layout of
@@ -273,12 +269,12 @@ impl Vgg16 {
         if h < MIN_SIDE || w < MIN_SIDE {
             return Err(VggError::TooSmall { width: w, height: h });
         }
-        let all: Vec<Option<Tensor<4>>> = match self.conv {
-            VggConv::Graph => {
+        let all: Vec<Option<Tensor<4>>> = match self.forward {
+            VggForward::Graph => {
                 let o = self.model.forward(image);
                 [o.0, o.1, o.2, o.3, o.4, o.5, o.6, o.7, o.8, o.9, o.10, o.11, o.12].into_iter().map(Some).collect()
             }
-            VggConv::Gemm => gemm::forward(&self.model, image, layers),
+            VggForward::Staged => staged::forward(&self.model, image, layers),
         };
         let mut maps = BTreeMap::new();
         for (layer, map) in VggLayer::ALL.into_iter().zip(all) {

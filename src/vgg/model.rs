@@ -3,7 +3,7 @@
 include!(concat!(env!("OUT_DIR"), "/model/vgg16_features.rs"));
 
 /// The imported graph's pieces, in network order, for a forward pass that
-/// runs the same operations with its own convolution (`crate::vgg::gemm`).
+/// runs the same modules layer by layer (`crate::vgg::staged`).
 impl Model {
     /// The input scaling (x 255) and the Caffe mean subtracted after it.
     pub(crate) fn input_constants(&self) -> (Tensor<1>, Tensor<4>) {
