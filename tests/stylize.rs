@@ -18,7 +18,7 @@ use refnpr::field::march::{self, MarchParams, Marcher};
 use refnpr::field::optim::{RmsStart, Rmsprop};
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
 use refnpr::scene::data::{self, procedural};
-use refnpr::stylize::config::{ColourNorm, Placement, StylizeConfig};
+use refnpr::stylize::config::{ColourNorm, Placement, RayKernel, StylizeConfig};
 use refnpr::stylize::field::{
     DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, render_chunks,
 };
@@ -601,17 +601,6 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
     for k in ["registration", "refit", "content", "image_epochs", "smooth_update"] {
         assert!(json["seconds"][k].as_f64().is_some(), "seconds.{k}");
     }
-    // Host-device traffic of an image step: the render stays on the device
-    // for VGG, so reads are the step's loss values only (one read for the
-    // image losses, one per pseudo-ray group: the reference's pixels and the
-    // registered ones), 4-byte scalars; nothing image- or grid-sized.
-    for phase in ["image_epochs", "smooth_update"] {
-        let t = &report.transfers[phase];
-        assert!(t.steps > 0, "{phase}: no steps counted");
-        assert!(t.total.reads <= 3 * t.steps as u64, "{phase}: {:?}", t.total);
-        assert!(t.total.read_bytes <= 4 * 8 * t.steps as u64, "{phase}: {:?}", t.total);
-        assert!(t.total.uploads > 0, "{phase}: the step's sample lists are uploaded");
-    }
     assert!(json["transfers"]["refit"]["per_step"]["reads"].as_u64().is_some());
     // L_color's targets: one record per training view, a 4x4 relu5 grid at
     // 64 px; the reference view (0) is supervised with its own style colours.
@@ -682,8 +671,11 @@ fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
             .unwrap();
     assert!(registered.registered_pixels > 0);
 
+    // The Burn graph for the ray losses (a GPU's path; the CPU backends
+    // default to the fused host pass), so the traffic checks below see it.
     let mut config = quick_config(1);
     config.schedule.ray_epochs = 0.5;
+    config.ray_kernel = RayKernel::Graph;
     let again = run_stylize(
         &StylizeJob {
             render_test: false,
@@ -707,6 +699,39 @@ fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
         checkpoint::load_with(&t.path().join("file"), &d, false).unwrap(),
     );
     assert_eq!(to_vec(a.grid.sh.clone()), to_vec(b.grid.sh.clone()), "the stylized colours differ");
+    // Host-device traffic of an image step on the graph path: the render
+    // stays on the device for VGG, so reads are the step's loss values only
+    // (one read for the image losses, one per pseudo-ray group: the
+    // reference's pixels and the registered ones), 4-byte scalars; nothing
+    // image- or grid-sized.
+    let moved = &again.transfers["image_epochs"];
+    assert!(moved.steps > 0, "image_epochs: no steps counted");
+    assert!(moved.total.reads <= 3 * moved.steps as u64, "image_epochs: {:?}", moved.total);
+    assert!(moved.total.read_bytes <= 4 * 8 * moved.steps as u64, "image_epochs: {:?}", moved.total);
+    assert!(moved.total.uploads > 0, "image_epochs: the step's sample lists are uploaded");
+
+    // The fused host pass (the CPU backends' default) stylizes the same
+    // field up to float rounding: RMSprop's first step is lr x sign(g), so
+    // a row whose gradient is near zero may step the other way; all but a
+    // few values agree to 1e-3.
+    if refnpr::util::tensor::is_host_memory(&d) {
+        let host = StylizeJob {
+            render_test: false,
+            ..job(
+                &photo,
+                &case,
+                &t.path().join("host"),
+                StylizeConfig { ray_kernel: RayKernel::Host, ..config.clone() },
+                Method::RefNpr,
+            )
+        };
+        run_stylize(&host, &refnpr::Quiet).unwrap();
+        let h = checkpoint::load_with(&t.path().join("host"), &d, false).unwrap();
+        let (graph_sh, host_sh) = (to_vec(a.grid.sh.clone()), to_vec(h.grid.sh.clone()));
+        let apart = graph_sh.iter().zip(&host_sh).filter(|(x, y)| (*x - *y).abs() > 1e-3).count();
+        eprintln!("graph vs host ray pass: {apart} of {} SH values more than 1e-3 apart", graph_sh.len());
+        assert!(apart * 1000 <= graph_sh.len(), "{apart} of {} values differ", graph_sh.len());
+    }
 
     // The sample lists (pseudo-rays and views) kept where this backend does
     // not keep them by default (CPU: on the "device", gathered there; wgpu:
@@ -1182,7 +1207,12 @@ fn a_killed_stylization_resumes_to_the_same_field() {
     let curve = |dir: &std::path::Path| {
         let j: serde_json::Value =
             serde_json::from_str(&std::fs::read_to_string(dir.join("stylize.json")).unwrap()).unwrap();
-        j["curve"].clone()
+        // Everything but each step's wall time.
+        let mut c = j["curve"].clone();
+        c.as_array_mut().unwrap().iter_mut().for_each(|p| {
+            p.as_object_mut().unwrap().remove("seconds");
+        });
+        c
     };
     assert_eq!(curve(&whole), curve(&killed));
 }
