@@ -445,7 +445,8 @@ fn deferred_backprop_equals_direct_backprop() {
 
 /// The fused plain-Rust ray pass (`field::host_colour`, the CPU backends'
 /// path for L_ref and the refit) against the Burn graph and autodiff: the
-/// same colours and the same mean-squared-error gradient to 1e-5 relative,
+/// same colours and the same mean-squared-error gradient to 1e-5 relative
+/// (1e-4 on wgpu),
 /// dense and sparse, on repeated and empty picks, with a target low enough
 /// that some samples' colours clamp at zero.
 #[test]
@@ -460,7 +461,7 @@ fn host_ray_kernel_matches_the_graph() {
     let graph_rgb = render_plain(&grid.sh, &samples, bg, 4096);
     let host_rgb = host_colour::render(&sh, &samples, None, bg);
     let worst = graph_rgb.iter().zip(&host_rgb).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-    assert!(worst < 1e-5, "colours differ by {worst}");
+    assert!(worst < common::tol(1e-5), "colours differ by {worst}");
     let mut rng = ChaCha8Rng::seed_from_u64(8);
     let mut picks = vec![0, 0, samples.num_rays - 1];
     picks.extend((0..3000).map(|_| rng.random_range(0..samples.num_rays)));
@@ -491,7 +492,7 @@ fn host_ray_kernel_matches_the_graph() {
         let norm = graph.iter().map(|x| x * x).sum::<f32>().sqrt();
         let err = graph.iter().zip(&host).map(|(a, b)| (a - b) * (a - b)).sum::<f32>().sqrt();
         eprintln!("sparse {sparse}: host vs graph gradient, relative L2 error {:.2e}", err / norm);
-        assert!(norm > 0.0 && err / norm < 1e-5, "sparse {sparse}: relative error {}", err / norm);
+        assert!(norm > 0.0 && err / norm < common::tol(1e-5), "sparse {sparse}: relative error {}", err / norm);
     }
 }
 
