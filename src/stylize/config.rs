@@ -45,7 +45,8 @@ pub enum RayKernel {
     Auto,
     /// The Burn graph (`field::frozen::render_colour`) and autodiff.
     Graph,
-    /// The fused plain-Rust pass (`field::host_colour`); CPU backends only.
+    /// The fused plain-Rust pass (`field::host_colour`), meant for the CPU
+    /// backends (on a GPU it would read the SH grid back every step).
     Host,
 }
 
