@@ -386,52 +386,21 @@ fn run() -> Result<()> {
             run_bench_vgg(backends, &sizes, warmup, repeats, no_onnxruntime, forward, json)
         }
         Command::BenchStylize { inputs, out, config, method, refit_epochs, image_epochs, backend, json } => {
-            let config = match &config {
-                Some(p) => StylizeConfig::from_file(p)?,
-                None => StylizeConfig::default(),
-            };
-            let backend = backend_or_env(backend, &progress)?;
             let PhotoAndCase { photo, reference: case, data } = inputs;
             let job = StylizeJob {
                 photo,
                 case,
                 out,
-                config,
+                config: stylize_config(config.as_deref())?,
                 method,
-                backend,
+                backend: backend_or_env(backend, &progress)?,
                 style: None,
                 data,
                 registration: None,
                 render_test: false,
                 resume: false,
             };
-            let r = bench::stylize_timing(job, refit_epochs, image_epochs, &progress)?;
-            println!(
-                "{} on {} ({} views, {}x{}), {}:",
-                r.method,
-                r.backend,
-                r.views,
-                r.image_size[0],
-                r.image_size[1],
-                r.seconds.iter().map(|(k, v)| format!("{k} {v:.1} s")).collect::<Vec<_>>().join(", ")
-            );
-            for p in &r.phases {
-                println!(
-                    "  {}: {} steps, median {:.3} s per step (mean {:.3}); per step: {}",
-                    p.phase,
-                    p.steps,
-                    p.median_step_seconds,
-                    p.mean_step_seconds,
-                    profile::describe(&p.parts)
-                );
-            }
-            if let Some(mb) = r.peak_rss_mb {
-                println!("  peak memory {mb:.0} MB");
-            }
-            if let Some(path) = json {
-                files::write_json(&path, &r)?;
-            }
-            Ok(())
+            run_bench_stylize(job, refit_epochs, image_epochs, json.as_deref(), &progress)
         }
         Command::Reference { ckpt, view, out, data } => run_reference(&ckpt, &view, &out, data),
         Command::Register { inputs, out, params, overlays } => run_register(inputs, &out, &params, overlays, &progress),
@@ -712,10 +681,7 @@ fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Pr
     else {
         unreachable!("called for the stylize subcommand")
     };
-    let mut config = match &config {
-        Some(p) => StylizeConfig::from_file(p)?,
-        None => StylizeConfig::default(),
-    };
+    let mut config = stylize_config(config.as_deref())?;
     if let Some(e) = epochs {
         config.schedule.image_epochs = e;
     }
@@ -730,6 +696,45 @@ fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Pr
     let phases: Vec<String> = r.seconds.iter().map(|(k, v)| format!("{k} {v:.1}s")).collect();
     println!("stylized ({}) in {:.1} s: {}", r.method, r.total_seconds, phases.join(", "));
     println!("wrote {}/checkpoint.bin, stylize.json{}", job.out.display(), if render_test { ", test/" } else { "" });
+    Ok(())
+}
+
+/// The stylize config of `--config` (the defaults without one).
+fn stylize_config(path: Option<&Path>) -> Result<StylizeConfig> {
+    match path {
+        Some(p) => StylizeConfig::from_file(p),
+        None => Ok(StylizeConfig::default()),
+    }
+}
+
+/// `refnpr bench-stylize`: the short stylization's per-phase step costs, printed.
+fn run_bench_stylize(
+    job: StylizeJob,
+    refit_epochs: f32,
+    image_epochs: usize,
+    json: Option<&Path>,
+    progress: &dyn Progress,
+) -> Result<()> {
+    let r = bench::stylize_timing(job, refit_epochs, image_epochs, progress)?;
+    let phases: Vec<String> = r.seconds.iter().map(|(k, v)| format!("{k} {v:.1} s")).collect();
+    let [w, h] = r.image_size;
+    println!("{} on {} ({} views, {w}x{h}), {}:", r.method, r.backend, r.views, phases.join(", "));
+    for p in &r.phases {
+        println!(
+            "  {}: {} steps, median {:.3} s per step (mean {:.3}); per step: {}",
+            p.phase,
+            p.steps,
+            p.median_step_seconds,
+            p.mean_step_seconds,
+            profile::describe(&p.parts)
+        );
+    }
+    if let Some(mb) = r.peak_rss_mb {
+        println!("  peak memory {mb:.0} MB");
+    }
+    if let Some(path) = json {
+        files::write_json(path, &r)?;
+    }
     Ok(())
 }
 

@@ -56,7 +56,8 @@ where
                 let (lo, hi) = (samples.ray_offsets[r] as usize, samples.ray_offsets[r + 1] as usize);
                 coefficients.clear();
                 coefficients.extend((lo..hi).map(|s| interpolate(sh, samples, s)));
-                let rgb = composite(samples, lo, &coefficients, samples.final_transmittance[r], background);
+                let rgb =
+                    composite(samples, lo, coefficients.iter().copied(), samples.final_transmittance[r], background);
                 let (d_rgb, value) = loss(k, rgb);
                 total += value as f64;
                 if d_rgb == [0.0; 3] {
@@ -100,7 +101,8 @@ pub fn render(sh: &[f32], samples: &FrozenSamples, rays: Option<&[usize]>, backg
         for (i, px) in chunk.chunks_mut(3).enumerate() {
             let r = rays.map_or(p * 1024 + i, |rs| rs[p * 1024 + i]);
             let (lo, hi) = (samples.ray_offsets[r] as usize, samples.ray_offsets[r + 1] as usize);
-            px.copy_from_slice(&ray_colour(sh, samples, lo, hi, samples.final_transmittance[r], background));
+            let coefficients = (lo..hi).map(|s| interpolate(sh, samples, s));
+            px.copy_from_slice(&composite(samples, lo, coefficients, samples.final_transmittance[r], background));
         }
     });
     out
@@ -119,31 +121,12 @@ fn interpolate(sh: &[f32], samples: &FrozenSamples, s: usize) -> [f32; 3] {
     pre
 }
 
-/// One ray's colour: its samples `lo..hi` composited over the background.
-fn ray_colour(
-    sh: &[f32],
-    samples: &FrozenSamples,
-    lo: usize,
-    hi: usize,
-    transmittance: f32,
-    background: [f32; 3],
-) -> [f32; 3] {
-    let mut rgb = background.map(|b| b * transmittance);
-    for s in lo..hi {
-        let pre = interpolate(sh, samples, s);
-        for c in 0..3 {
-            rgb[c] += samples.weight[s] * (sh::C0 * pre[c] + 0.5).max(0.0);
-        }
-    }
-    rgb
-}
-
 /// The colour of a ray whose samples, from `lo` on, have the interpolated
-/// coefficients `coefficients`.
+/// coefficients `coefficients`, composited over the background.
 fn composite(
     samples: &FrozenSamples,
     lo: usize,
-    coefficients: &[[f32; 3]],
+    coefficients: impl IntoIterator<Item = [f32; 3]>,
     transmittance: f32,
     background: [f32; 3],
 ) -> [f32; 3] {

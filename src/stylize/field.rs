@@ -66,7 +66,7 @@ impl StepRows {
 
     /// The buffer row of grid row `row` (it must have been added).
     pub fn slot(&self, row: i32) -> i32 {
-        self.touched.as_ref().map_or(row, |s| s.local(row))
+        self.slot_fn()(row)
     }
 
     /// Grid row -> buffer row as a plain function (shareable across threads).

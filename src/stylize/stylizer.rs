@@ -509,17 +509,21 @@ impl<'a> Stylizer<'a> {
             let rows = self.field.step_rows(self.cfg.optim.sparse, &corners, &tv);
             (pseudo, tv, rows)
         });
+        // The grid as host numbers, read once for the step's fused ray passes (`ray_kernel`).
+        let host_sh = self.host_kernel().then(|| self.profile.time("image_render", || self.host_sh()));
         let (grad, parts) = self.image_gradient(
             v,
             &samples,
             &rows,
+            host_sh.as_deref(),
             &guidance.guides[v],
             guidance.template.as_ref(),
             guidance.style_bank.as_ref(),
             smooth,
         )?;
         drop(samples);
-        let (ref_grad, ref_loss) = self.profile.time("reference_loss", || self.reference_gradient(pseudo, &rows));
+        let (ref_grad, ref_loss) =
+            self.profile.time("reference_loss", || self.reference_gradient(pseudo, &rows, host_sh.as_deref()));
         let grad = match ref_grad {
             Some(g) => grad + g,
             None => grad,
@@ -858,12 +862,17 @@ impl<'a> Stylizer<'a> {
 
     /// The pseudo-ray loss's gradient on the step's rows (λ_r times the mean
     /// squared error of each group of `pseudo_ray_batch`) and its value.
-    fn reference_gradient(&self, groups: Vec<PseudoRays>, rows: &StepRows) -> (Option<Tensor<2>>, f32) {
+    /// `host_sh` (the grid as host numbers) selects the fused ray pass.
+    fn reference_gradient(
+        &self,
+        groups: Vec<PseudoRays>,
+        rows: &StepRows,
+        host_sh: Option<&[f32]>,
+    ) -> (Option<Tensor<2>>, f32) {
         let mut total: Option<Tensor<2>> = None;
         let mut value = 0.0;
-        let sh = if self.host_kernel() && !groups.is_empty() { Some(self.host_sh()) } else { None };
         for group in groups {
-            let (g, v) = match (&sh, group.on_device) {
+            let (g, v) = match (host_sh, group.on_device) {
                 (Some(sh), _) => self.host_mse_gradient(
                     sh,
                     &group.lists,
@@ -892,13 +901,15 @@ impl<'a> Stylizer<'a> {
     }
 
     /// Deferred back-propagation of the image losses of view `v`: the
-    /// gradient with respect to the SH rows, and the loss values.
+    /// gradient with respect to the SH rows, and the loss values. `host_sh`
+    /// (the grid as host numbers) selects the fused ray pass.
     #[allow(clippy::too_many_arguments)]
     fn image_gradient(
         &self,
         v: usize,
         samples: &FrozenSamples,
         rows: &StepRows,
+        host_sh: Option<&[f32]>,
         guide: &ViewGuide,
         template: Option<&Template>,
         style_bank: Option<&Tensor<2>>,
@@ -906,8 +917,8 @@ impl<'a> Stylizer<'a> {
     ) -> Result<(Tensor<2>, ImageLosses)> {
         let cam = &self.dataset.train[v].camera;
         let (w, h) = (cam.intrinsics.width as usize, cam.intrinsics.height as usize);
-        if self.host_kernel() {
-            return self.host_image_gradient(samples, rows, (w, h), guide, template, style_bank, smooth);
+        if let Some(sh) = host_sh {
+            return self.host_image_gradient(sh, samples, rows, (w, h), guide, template, style_bank, smooth);
         }
         // 1. Full image, no autodiff; it stays on the device, and so do the
         // chunks' sample lists, gathered there (the view's lists are kept on
@@ -949,6 +960,7 @@ impl<'a> Stylizer<'a> {
     #[allow(clippy::too_many_arguments)]
     fn host_image_gradient(
         &self,
+        sh: &[f32],
         samples: &FrozenSamples,
         rows: &StepRows,
         (w, h): (usize, usize),
@@ -957,8 +969,7 @@ impl<'a> Stylizer<'a> {
         style_bank: Option<&Tensor<2>>,
         smooth: bool,
     ) -> Result<(Tensor<2>, ImageLosses)> {
-        let sh = self.profile.time("image_render", || self.host_sh());
-        let rgb = self.profile.time("image_render", || host_colour::render(&sh, samples, None, self.background));
+        let rgb = self.profile.time("image_render", || host_colour::render(sh, samples, None, self.background));
         let started = std::time::Instant::now();
         let image = planar_image(floats(rgb, [w * h, 3], &self.device), w, h).autodiff().require_grad();
         let (loss, parts) = self.image_loss(image.clone(), guide, template, style_bank, smooth)?;
@@ -967,7 +978,7 @@ impl<'a> Stylizer<'a> {
         let g = to_vec(interleaved(g));
         self.profile.add("image_losses_vgg", started.elapsed().as_secs_f64());
         let (grad, _) = self.profile.time("image_rerender_grad", || {
-            host_colour::colour_gradient(&sh, samples, None, self.background, rows.len(), &rows.slot_fn(), |k, _| {
+            host_colour::colour_gradient(sh, samples, None, self.background, rows.len(), &rows.slot_fn(), |k, _| {
                 ([g[k * 3], g[k * 3 + 1], g[k * 3 + 2]], 0.0)
             })
         });

@@ -128,7 +128,7 @@ pub fn vgg_timing(
     // Forward on the plain backend, forward + backward on its autodiff twin.
     let plain = backend.device();
     let device = backend.autodiff_device();
-    let forward = forward.unwrap_or(crate::vgg::VggForward::default_for(&plain));
+    let forward = forward.unwrap_or_default();
     let vgg_plain = Vgg16::load(&plain).with_forward(forward);
     let vgg = Vgg16::load(&device).with_forward(forward);
     plain.seed(0);

@@ -182,21 +182,16 @@ impl FeatureMaps {
 }
 
 /// How the forward pass runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum VggForward {
     /// The imported ONNX graph's generated `forward` (all 13 layers).
     Graph,
     /// The same modules in the same order, stopping after the deepest
-    /// requested layer (`vgg::staged`).
+    /// requested layer (`vgg::staged`): the default on every backend (the
+    /// same numbers, less work).
+    #[default]
     Staged,
-}
-
-impl VggForward {
-    /// Staged on every backend: the same numbers, less work.
-    pub fn default_for(_device: &Device) -> Self {
-        VggForward::Staged
-    }
 }
 
 /// The VGG16 feature stack (13 convolutions, ImageNet weights).
@@ -212,14 +207,14 @@ impl Vgg16 {
     pub fn load(device: &Device) -> Self {
         let model = Model::from_embedded(device).no_grad();
         crate::util::transfer::record_upload(model.num_params() * 4);
-        Self { model, forward: VggForward::default_for(device) }
+        Self { model, forward: VggForward::default() }
     }
 
     /// The same architecture with Burn's default random initialisation under
     /// `seed`: the control for tests that must prove the real weights matter.
     pub fn random(device: &Device, seed: u64) -> Self {
         device.seed(seed);
-        Self { model: Model::new(device).no_grad(), forward: VggForward::default_for(device) }
+        Self { model: Model::new(device).no_grad(), forward: VggForward::default() }
     }
 
     /// The same weights, the forward pass run as `forward` says.
