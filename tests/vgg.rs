@@ -164,26 +164,19 @@ fn input_gradient_matches_finite_differences() {
     assert!(grad.iter().any(|g| g.abs() > 1e-3), "gradient is not all zero");
 }
 
-/// The staged forward pass (the imported graph's modules one by one,
-/// stopping after the deepest requested layer) agrees with the generated
-/// `forward` on every layer's value and on the gradient of the loss layers
-/// with respect to the image, to 1e-4 relative (1e-3 on wgpu), on a batch
-/// of two non-square images; and it returns only the layers asked for.
+/// The staged forward passes (the imported graph's modules one by one,
+/// stopping after the deepest requested layer; with Burn's convolution and
+/// with the project's Winograd kernel) agree with the generated `forward`
+/// on every layer's value and on the gradient of the loss layers with
+/// respect to the image, to 1e-4 relative (1e-3 on wgpu), on a batch of two
+/// non-square images; and they return only the layers asked for.
 #[test]
 fn staged_forward_matches_the_imported_graph() {
     let device = common::backend().autodiff_device();
     let graph = Vgg16::load(&device).with_forward(VggForward::Graph);
-    let staged = graph.clone().with_forward(VggForward::Staged);
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let (h, w) = (40, 52);
     let image = floats((0..2 * 3 * h * w).map(|_| rng.random::<f32>()).collect(), [2, 3, h, w], &device);
-    let a = graph.features(image.clone(), &VggLayer::ALL).unwrap();
-    let b = staged.features(image.clone(), &VggLayer::ALL).unwrap();
-    for layer in VggLayer::ALL {
-        let err = max_rel_err(&to_vec(b.get(layer).clone()), &to_vec(a.get(layer).clone()));
-        println!("{layer}: forward max rel err {err:.2e}");
-        assert!(err <= common::tol(1e-4), "{layer}: forward max rel err {err:.2e}");
-    }
     let loss_layers: Vec<VggLayer> = VggLayer::TCM.to_vec();
     let gradient = |vgg: &Vgg16| {
         let x = image.clone().require_grad();
@@ -197,13 +190,65 @@ fn staged_forward_matches_the_imported_graph() {
             .unwrap();
         to_vec(x.grad(&loss.backward()).expect("gradient reaches the image"))
     };
-    let (ga, gb) = (gradient(&graph), gradient(&staged));
-    let err = max_rel_err(&gb, &ga);
-    println!("image gradient: max rel err {err:.2e}");
+    let a = graph.features(image.clone(), &VggLayer::ALL).unwrap();
+    let ga = gradient(&graph);
     assert!(ga.iter().any(|g| g.abs() > 0.0), "the gradient is zero");
-    assert!(err <= common::tol(1e-4), "image gradient: max rel err {err:.2e}");
-    let tcm = staged.features(image, &VggLayer::TCM).unwrap();
-    assert_eq!(tcm.layers().collect::<Vec<_>>(), VggLayer::TCM.to_vec());
+    for forward in [VggForward::Staged, VggForward::Winograd] {
+        let staged = graph.clone().with_forward(forward);
+        let b = staged.features(image.clone(), &VggLayer::ALL).unwrap();
+        for layer in VggLayer::ALL {
+            let err = max_rel_err(&to_vec(b.get(layer).clone()), &to_vec(a.get(layer).clone()));
+            println!("{forward:?} {layer}: forward max rel err {err:.2e}");
+            assert!(err <= common::tol(1e-4), "{forward:?} {layer}: forward max rel err {err:.2e}");
+        }
+        let err = max_rel_err(&gradient(&staged), &ga);
+        println!("{forward:?} image gradient: max rel err {err:.2e}");
+        assert!(err <= common::tol(1e-4), "{forward:?} image gradient: max rel err {err:.2e}");
+        let tcm = staged.features(image.clone(), &VggLayer::TCM).unwrap();
+        assert_eq!(tcm.layers().collect::<Vec<_>>(), VggLayer::TCM.to_vec());
+    }
+}
+
+/// The 3x3 convolution operation (`vgg::conv_op`: the Winograd kernel on
+/// the CPU backends, Burn's `conv2d` on wgpu) against Burn's `conv2d`:
+/// the output and the gradients of the input, the weights and the bias, to
+/// 1e-4 relative (1e-3 on wgpu), on a batch of two images with odd sides.
+#[test]
+fn conv3x3_op_and_its_gradients_match_burns_conv2d() {
+    use burn::tensor::module::conv2d;
+    use burn::tensor::ops::ConvOptions;
+    let device = common::backend().autodiff_device();
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let mut values = |shape: [usize; 4]| {
+        let len = shape.iter().product();
+        floats((0..len).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect(), shape, &device)
+    };
+    let (n, c, k, h, w) = (2, 5, 7, 13, 10);
+    let x = values([n, c, h, w]);
+    let weight = values([k, c, 3, 3]);
+    let bias = values([1, 1, 1, k]).reshape([k]);
+    let upstream = values([n, k, h, w]);
+    let run = |ours: bool| {
+        let (x, weight, bias) = (x.clone().require_grad(), weight.clone().require_grad(), bias.clone().require_grad());
+        let y = if ours {
+            refnpr::vgg::conv_op::conv3x3(x.clone(), weight.clone(), bias.clone())
+        } else {
+            conv2d(x.clone(), weight.clone(), Some(bias.clone()), ConvOptions::new([1, 1], [1, 1], [1, 1], 1))
+        };
+        // A loss whose output gradient is `upstream`, not uniform.
+        let grads = (y.clone() * upstream.clone()).sum().backward();
+        let grad_of = |t: &Tensor<4>| to_vec(t.grad(&grads).expect("gradient"));
+        [to_vec(y), grad_of(&x), grad_of(&weight), to_vec(bias.grad(&grads).expect("bias gradient"))]
+    };
+    let (ours, burn) = (run(true), run(false));
+    for (name, (a, b)) in
+        ["output", "input gradient", "weight gradient", "bias gradient"].iter().zip(ours.iter().zip(&burn))
+    {
+        let err = max_rel_err(a, b);
+        println!("{name}: max rel err {err:.2e}");
+        assert!(b.iter().any(|v| v.abs() > 0.0), "{name}: reference is zero");
+        assert!(err <= common::tol(1e-4), "{name}: max rel err {err:.2e}");
+    }
 }
 
 #[test]

@@ -25,6 +25,8 @@ use thiserror::Error;
 pub use crate::util::tensor::image_tensor;
 use crate::vgg::model::Model;
 
+pub mod conv3x3;
+pub mod conv_op;
 pub mod features;
 pub mod model;
 pub mod staged;
@@ -188,10 +190,13 @@ pub enum VggForward {
     /// The imported ONNX graph's generated `forward` (all 13 layers).
     Graph,
     /// The same modules in the same order, stopping after the deepest
-    /// requested layer (`vgg::staged`): the default on every backend (the
-    /// same numbers, less work).
-    #[default]
+    /// requested layer (`vgg::staged`; the same numbers, less work).
     Staged,
+    /// As `Staged`, with the 3x3 convolutions run by the project's Winograd
+    /// kernel on the CPU backends (`vgg::conv3x3`, `vgg::conv_op`; Burn's
+    /// own convolution on wgpu): the default.
+    #[default]
+    Winograd,
 }
 
 /// The VGG16 feature stack (13 convolutions, ImageNet weights).
@@ -269,7 +274,8 @@ impl Vgg16 {
                 let o = self.model.forward(image);
                 [o.0, o.1, o.2, o.3, o.4, o.5, o.6, o.7, o.8, o.9, o.10, o.11, o.12].into_iter().map(Some).collect()
             }
-            VggForward::Staged => staged::forward(&self.model, image, layers),
+            VggForward::Staged => staged::forward(&self.model, image, layers, false),
+            VggForward::Winograd => staged::forward(&self.model, image, layers, true),
         };
         let mut maps = BTreeMap::new();
         for (layer, map) in VggLayer::ALL.into_iter().zip(all) {

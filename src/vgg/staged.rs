@@ -7,11 +7,14 @@
 use burn::tensor::Tensor;
 
 use crate::vgg::VggLayer;
+use crate::vgg::conv_op::conv3x3_forward;
 use crate::vgg::model::Model;
 
 /// The ReLU outputs of `model` up to the deepest of `layers`, in network
 /// order (13 entries, `None` past the deepest).
-pub fn forward(model: &Model, image: Tensor<4>, layers: &[VggLayer]) -> Vec<Option<Tensor<4>>> {
+/// `winograd` runs the 3x3 convolutions through `vgg::conv_op` (on the CPU
+/// backends; Burn's `conv2d` elsewhere).
+pub fn forward(model: &Model, image: Tensor<4>, layers: &[VggLayer], winograd: bool) -> Vec<Option<Tensor<4>>> {
     let deepest = layers.iter().map(|l| l.index()).max().unwrap_or(0);
     let (scale, mean) = model.input_constants();
     let mut x = image.mul(scale.unsqueeze_dims(&[0, 1, 2])).sub(mean);
@@ -22,7 +25,8 @@ pub fn forward(model: &Model, image: Tensor<4>, layers: &[VggLayer]) -> Vec<Opti
         if let Some(p) = [2, 4, 7, 10].iter().position(|&first| first == i) {
             x = pools[p].forward(x);
         }
-        x = burn::tensor::activation::relu(conv.forward(x));
+        let y = if winograd { conv3x3_forward(conv, x) } else { conv.forward(x) };
+        x = burn::tensor::activation::relu(y);
         out[i] = Some(x.clone());
     }
     out

@@ -1,0 +1,162 @@
+//! `vgg::conv3x3`'s kernel as a Burn operation with its own backward, for
+//! the CPU backends (flex, ndarray) and autodiff over them.
+//!
+//! Burn 0.22 picks the backend at run time (`Dispatch`); an operation of
+//! our own is a backend extension trait that the `backend_extension` macro
+//! routes to the backend a tensor lives on. The CPU backends implement it
+//! on host memory (`vgg::conv3x3`), `Autodiff<B>` records a backward step
+//! whose gradients are the kernel's. On wgpu [`conv3x3`] is Burn's own
+//! `conv2d` (the GPU has its own convolution kernels), and so are convolutions
+//! other than 3x3 / stride 1 / padding 1.
+
+// NdArray is deprecated upstream and stays a supported backend here; the
+// code the extension macro generates names it too.
+#![allow(deprecated)]
+
+#[cfg(feature = "flex")]
+use burn::backend::Flex;
+#[cfg(feature = "ndarray")]
+use burn::backend::NdArray;
+use burn::backend::TensorMetadata;
+use burn::backend::autodiff::Autodiff;
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Backend, Dispatch, backend_extension};
+use burn::nn::PaddingConfig2d;
+use burn::nn::conv::Conv2d;
+use burn::tensor::{Tensor, TensorData};
+
+use crate::util::tensor::is_host_memory;
+use crate::vgg::conv3x3::{self as kernel, Dims, WinogradWeights};
+
+/// A 3x3 convolution, stride 1, zero padding 1, with bias.
+#[cfg_attr(all(feature = "flex", feature = "ndarray"), backend_extension(Flex, NdArray, Autodiff))]
+#[cfg_attr(all(feature = "flex", not(feature = "ndarray")), backend_extension(Flex, Autodiff))]
+#[cfg_attr(all(not(feature = "flex"), feature = "ndarray"), backend_extension(NdArray, Autodiff))]
+pub trait Conv3x3Backend: Backend {
+    /// `x` `[N, C, H, W]`, `weight` `[K, C, 3, 3]`, `bias` `[K]` -> `[N, K, H, W]`.
+    fn conv3x3(x: FloatTensor<Self>, weight: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self>;
+}
+
+#[cfg(feature = "flex")]
+impl Conv3x3Backend for Flex {
+    fn conv3x3(x: FloatTensor<Self>, weight: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+        host_forward::<Self>(x, weight, bias)
+    }
+}
+
+#[cfg(feature = "ndarray")]
+impl Conv3x3Backend for NdArray {
+    fn conv3x3(x: FloatTensor<Self>, weight: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+        host_forward::<Self>(x, weight, bias)
+    }
+}
+
+/// The backward step: the kernel's input, weight and bias gradients.
+#[derive(Debug)]
+struct Conv3x3Backward;
+
+impl<B: Backend> Backward<B, 3> for Conv3x3Backward {
+    /// The forward's input and weights.
+    type State = (FloatTensor<B>, FloatTensor<B>);
+
+    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+        let [node_x, node_weight, node_bias] = ops.parents;
+        let grad = grads.consume::<B>(&ops.node);
+        let (x, weight) = ops.state;
+        let device = grad.device();
+        let (dy, dy_dims) = to_host::<B>(grad);
+        if let Some(node) = node_x {
+            let (w, w_dims) = to_host::<B>(weight);
+            let flipped = WinogradWeights::flipped_transposed(&w, w_dims[0], w_dims[1]);
+            let dx = kernel::input_grad(&dy, dims(&dy_dims), &flipped);
+            let x_dims = [dy_dims[0], w_dims[1], dy_dims[2], dy_dims[3]];
+            grads.register::<B>(node.id, from_host::<B>(dx, x_dims.to_vec(), &device));
+        }
+        if let Some(node) = node_weight {
+            let (xs, x_dims) = to_host::<B>(x);
+            let k = dy_dims[1];
+            let dw = kernel::weight_grad(&xs, dims(&x_dims), &dy, k);
+            grads.register::<B>(node.id, from_host::<B>(dw, vec![k, x_dims[1], 3, 3], &device));
+        }
+        if let Some(node) = node_bias {
+            let db = kernel::bias_grad(&dy, dims(&dy_dims));
+            grads.register::<B>(node.id, from_host::<B>(db, vec![dy_dims[1]], &device));
+        }
+    }
+}
+
+impl<B: Conv3x3Backend, C: CheckpointStrategy> Conv3x3Backend for Autodiff<B, C> {
+    fn conv3x3(x: FloatTensor<Self>, weight: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+        match Conv3x3Backward.prepare::<C>([x.node(), weight.node(), bias.node()]).compute_bound().stateful() {
+            OpsKind::Tracked(prep) => {
+                let (x, weight) = (x.into_primitive(), weight.into_primitive());
+                let output = B::conv3x3(x.clone(), weight.clone(), bias.into_primitive());
+                prep.finish((x, weight), output)
+            }
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::conv3x3(x.into_primitive(), weight.into_primitive(), bias.into_primitive()))
+            }
+        }
+    }
+}
+
+/// The forward on host memory, for any backend whose tensors can be read.
+fn host_forward<B: Backend>(x: FloatTensor<B>, weight: FloatTensor<B>, bias: FloatTensor<B>) -> FloatTensor<B> {
+    let device = x.device();
+    let (xs, x_dims) = to_host::<B>(x);
+    let (w, w_dims) = to_host::<B>(weight);
+    let (b, _) = to_host::<B>(bias);
+    assert_eq!(x_dims.len(), 4, "conv3x3 takes [N, C, H, W] input, got {x_dims:?}");
+    assert_eq!(&w_dims[1..], [x_dims[1], 3, 3], "conv3x3 weights [K, C, 3, 3] for input {x_dims:?}, got {w_dims:?}");
+    let weights = WinogradWeights::new(&w, w_dims[0], w_dims[1]);
+    let y = kernel::forward(&xs, dims(&x_dims), &weights, Some(&b));
+    from_host::<B>(y, vec![x_dims[0], w_dims[0], x_dims[2], x_dims[3]], &device)
+}
+
+fn dims(shape: &[usize]) -> Dims {
+    Dims { n: shape[0], c: shape[1], h: shape[2], w: shape[3] }
+}
+
+/// A CPU backend's tensor as f32 values and its shape.
+fn to_host<B: Backend>(tensor: FloatTensor<B>) -> (Vec<f32>, Vec<usize>) {
+    let data = burn::tensor::read_sync(B::float_into_data(tensor)).expect("reading a CPU backend's tensor");
+    let shape = data.shape().to_vec();
+    let values = data.convert::<f32>().try_into_vec::<f32>().expect("f32 values after conversion");
+    (values, shape)
+}
+
+fn from_host<B: Backend>(values: Vec<f32>, shape: Vec<usize>, device: &B::Device) -> FloatTensor<B> {
+    B::float_from_data(TensorData::new(values, shape), device)
+}
+
+/// `conv`'s forward, through [`conv3x3`] where it applies (a 3x3, stride
+/// 1, padding 1 convolution with bias), else through Burn's own `conv2d`.
+pub fn conv3x3_forward(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
+    match &conv.bias {
+        Some(bias) if is_3x3_same(conv) => conv3x3(x, conv.weight.val(), bias.val()),
+        _ => conv.forward(x),
+    }
+}
+
+/// A 3x3, stride 1, padding 1 convolution with bias: the Winograd kernel on
+/// the CPU backends (and autodiff over them), Burn's `conv2d` on wgpu.
+pub fn conv3x3(x: Tensor<4>, weight: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
+    if !is_host_memory(&x.device()) {
+        let options = burn::tensor::ops::ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
+        return burn::tensor::module::conv2d(x, weight, Some(bias), options);
+    }
+    let out = <Dispatch as Conv3x3Backend>::conv3x3(x.into_dispatch(), weight.into_dispatch(), bias.into_dispatch());
+    Tensor::from_dispatch(out)
+}
+
+fn is_3x3_same(conv: &Conv2d) -> bool {
+    conv.kernel_size == [3, 3]
+        && conv.stride == [1, 1]
+        && conv.dilation == [1, 1]
+        && conv.groups == 1
+        && matches!(conv.padding, PaddingConfig2d::Explicit(1, 1, 1, 1))
+}
