@@ -210,9 +210,10 @@ fn staged_forward_matches_the_imported_graph() {
 }
 
 /// The 3x3 convolution operation (`vgg::conv_op`: the Winograd kernel on
-/// the CPU backends, Burn's `conv2d` on wgpu) against Burn's `conv2d`:
-/// the output and the gradients of the input, the weights and the bias, to
-/// 1e-4 relative (1e-3 on wgpu), on a batch of two images with odd sides.
+/// the CPU backends, Burn's `conv2d` on wgpu) against Burn's `conv2d`,
+/// without and with the fused ReLU: the output and the gradients of the
+/// input, the weights and the bias, to 1e-4 relative (1e-3 on wgpu), on a
+/// batch of two images with odd sides.
 #[test]
 fn conv3x3_op_and_its_gradients_match_burns_conv2d() {
     use burn::tensor::module::conv2d;
@@ -228,26 +229,28 @@ fn conv3x3_op_and_its_gradients_match_burns_conv2d() {
     let weight = values([k, c, 3, 3]);
     let bias = values([1, 1, 1, k]).reshape([k]);
     let upstream = values([n, k, h, w]);
-    let run = |ours: bool| {
+    let run = |ours: bool, relu: bool| {
         let (x, weight, bias) = (x.clone().require_grad(), weight.clone().require_grad(), bias.clone().require_grad());
         let y = if ours {
-            refnpr::vgg::conv_op::conv3x3(x.clone(), weight.clone(), bias.clone())
+            refnpr::vgg::conv_op::conv3x3(x.clone(), weight.clone(), bias.clone(), relu)
         } else {
-            conv2d(x.clone(), weight.clone(), Some(bias.clone()), ConvOptions::new([1, 1], [1, 1], [1, 1], 1))
+            let y = conv2d(x.clone(), weight.clone(), Some(bias.clone()), ConvOptions::new([1, 1], [1, 1], [1, 1], 1));
+            if relu { burn::tensor::activation::relu(y) } else { y }
         };
         // A loss whose output gradient is `upstream`, not uniform.
         let grads = (y.clone() * upstream.clone()).sum().backward();
         let grad_of = |t: &Tensor<4>| to_vec(t.grad(&grads).expect("gradient"));
         [to_vec(y), grad_of(&x), grad_of(&weight), to_vec(bias.grad(&grads).expect("bias gradient"))]
     };
-    let (ours, burn) = (run(true), run(false));
-    for (name, (a, b)) in
-        ["output", "input gradient", "weight gradient", "bias gradient"].iter().zip(ours.iter().zip(&burn))
-    {
-        let err = max_rel_err(a, b);
-        println!("{name}: max rel err {err:.2e}");
-        assert!(b.iter().any(|v| v.abs() > 0.0), "{name}: reference is zero");
-        assert!(err <= common::tol(1e-4), "{name}: max rel err {err:.2e}");
+    for relu in [false, true] {
+        let (ours, burn) = (run(true, relu), run(false, relu));
+        let names = ["output", "input gradient", "weight gradient", "bias gradient"];
+        for (name, (a, b)) in names.iter().zip(ours.iter().zip(&burn)) {
+            let err = max_rel_err(a, b);
+            println!("relu {relu}, {name}: max rel err {err:.2e}");
+            assert!(b.iter().any(|v| v.abs() > 0.0), "{name}: reference is zero");
+            assert!(err <= common::tol(1e-4), "relu {relu}, {name}: max rel err {err:.2e}");
+        }
     }
 }
 

@@ -46,8 +46,15 @@ impl Dims {
     }
 }
 
-/// Weights in the Winograd domain: `u[xi][k][c]` for the 16 positions xi of
-/// a 4x4 tile, `k` output and `c` input channels.
+/// Output tile side: each tile computes 4x4 outputs of a channel pair.
+const TILE: usize = 4;
+/// Input tile side (TILE + 2).
+const ALPHA: usize = 6;
+/// Positions of an input tile, each one matrix product.
+const XI: usize = ALPHA * ALPHA;
+
+/// Weights in the Winograd domain: `u[xi][k][c]` for the 36 positions xi of
+/// a 6x6 tile, `k` output and `c` input channels.
 #[derive(Debug, Clone)]
 pub struct WinogradWeights {
     k: usize,
@@ -60,39 +67,56 @@ impl WinogradWeights {
     /// `conv2d`): `U = G g G^T` per channel pair.
     pub fn new(weights: &[f32], k: usize, c: usize) -> Self {
         assert_eq!(weights.len(), k * c * 9, "3x3 weights [{k}, {c}, 3, 3]");
-        Self::build(k, c, |ko, ci, a, b| weights[((ko * c + ci) * 3 + a) * 3 + b])
+        Self::build(k, c, |ko, ci| &weights[(ko * c + ci) * 9..][..9], false)
     }
 
     /// The weights of the input gradient: `W'[c][k][a][b] = W[k][c][2-a][2-b]`
     /// for weights `W` `[K, C, 3, 3]`, so `K' = C` and `C' = K`.
     pub fn flipped_transposed(weights: &[f32], k: usize, c: usize) -> Self {
         assert_eq!(weights.len(), k * c * 9, "3x3 weights [{k}, {c}, 3, 3]");
-        Self::build(c, k, |ci, ko, a, b| weights[((ko * c + ci) * 3 + (2 - a)) * 3 + (2 - b)])
+        Self::build(c, k, |ci, ko| &weights[(ko * c + ci) * 9..][..9], true)
     }
 
-    fn build(k: usize, c: usize, g_at: impl Fn(usize, usize, usize, usize) -> f32) -> Self {
-        let mut u = vec![0.0f32; 16 * k * c];
-        for ko in 0..k {
-            for ci in 0..c {
-                let g = |a: usize, b: usize| g_at(ko, ci, a, b);
-                // t = G g (4x3), G = [[1,0,0],[.5,.5,.5],[.5,-.5,.5],[0,0,1]].
-                let mut t = [[0.0f32; 3]; 4];
-                for b in 0..3 {
-                    let (g0, g1, g2) = (g(0, b), g(1, b), g(2, b));
-                    t[0][b] = g0;
-                    t[1][b] = 0.5 * (g0 + g1 + g2);
-                    t[2][b] = 0.5 * (g0 - g1 + g2);
-                    t[3][b] = g2;
-                }
-                // u = t G^T (4x4).
-                for (i, row) in t.iter().enumerate() {
-                    let v = [row[0], 0.5 * (row[0] + row[1] + row[2]), 0.5 * (row[0] - row[1] + row[2]), row[2]];
-                    for (j, value) in v.into_iter().enumerate() {
-                        u[((i * 4 + j) * k + ko) * c + ci] = value;
+    /// `U = G g G^T` for every channel pair, `kernel(ko, ci)` the 9 taps of
+    /// output `ko` and input `ci` (row-major; read in reverse order, that
+    /// is rotated by 180 degrees, when `flip`). Per output channel, all
+    /// input channels at once (contiguous rows of `u`), in parallel.
+    fn build<'w>(k: usize, c: usize, kernel: impl Fn(usize, usize) -> &'w [f32] + Sync, flip: bool) -> Self {
+        // Every value is written below.
+        let mut u = spare_buffer(XI * k * c);
+        let out = SharedOut(u.as_mut_ptr());
+        (0..k).into_par_iter().for_each_init(
+            || (vec![0.0f32; 9 * c], vec![0.0f32; 18 * c]),
+            |(g, t), ko| {
+                let out = out;
+                for ci in 0..c {
+                    let taps = kernel(ko, ci);
+                    for tap in 0..9 {
+                        g[tap * c + ci] = taps[if flip { 8 - tap } else { tap }];
                     }
                 }
-            }
-        }
+                // t[i][b] = (G g)[i][b]: column b of every kernel.
+                for b in 0..3 {
+                    let input = [&g[b * c..(b + 1) * c], &g[(3 + b) * c..(4 + b) * c], &g[(6 + b) * c..(7 + b) * c]];
+                    let mut rows = t.chunks_mut(c).skip(b).step_by(3);
+                    weight_transform(std::array::from_fn(|_| rows.next().expect("six rows")), input);
+                }
+                // u[i][j] = (t G^T)[i][j], straight into u[6 i + j][ko][..].
+                for i in 0..ALPHA {
+                    let input = [
+                        &t[3 * i * c..(3 * i + 1) * c],
+                        &t[(3 * i + 1) * c..(3 * i + 2) * c],
+                        &t[(3 * i + 2) * c..(3 * i + 3) * c],
+                    ];
+                    // SAFETY: rows (6 i + j, ko) of u belong to this output
+                    // channel only, and u outlives the loop.
+                    let rows = std::array::from_fn(|j| unsafe {
+                        std::slice::from_raw_parts_mut(out.0.add(((i * ALPHA + j) * k + ko) * c), c)
+                    });
+                    weight_transform(rows, input);
+                }
+            },
+        );
         Self { k, c, u }
     }
 
@@ -107,6 +131,42 @@ impl WinogradWeights {
     }
 }
 
+impl Drop for WinogradWeights {
+    fn drop(&mut self) {
+        let buffer = std::mem::take(&mut self.u);
+        let mut spare = SPARE.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+        if spare.len() < SPARE_BUFFERS {
+            spare.push(buffer);
+        } else if let Some(smallest) = spare.iter_mut().min_by_key(|b| b.capacity()) {
+            if smallest.capacity() < buffer.capacity() {
+                *smallest = buffer;
+            }
+        }
+    }
+}
+
+/// The buffers of dropped `WinogradWeights`, for the next ones: a 512x512
+/// layer's 38 MB fresh from the system cost more in page faults than its
+/// transform (measured: 10-15 ms against 3). Two cover a forward and a
+/// backward step.
+static SPARE: std::sync::Mutex<Vec<Vec<f32>>> = std::sync::Mutex::new(Vec::new());
+const SPARE_BUFFERS: usize = 2;
+
+/// A buffer of `len` values whose contents are left as they were: the
+/// caller writes every value.
+fn spare_buffer(len: usize) -> Vec<f32> {
+    let mut spare = SPARE.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    match spare.iter().position(|b| b.capacity() >= len) {
+        Some(i) => {
+            let mut buffer = spare.swap_remove(i);
+            buffer.resize(len, 0.0);
+            buffer.truncate(len);
+            buffer
+        }
+        None => vec![0.0; len],
+    }
+}
+
 /// A pointer shared by the bands of one call, each writing its own
 /// elements.
 #[derive(Clone, Copy)]
@@ -117,8 +177,9 @@ unsafe impl Send for SharedOut {}
 unsafe impl Sync for SharedOut {}
 
 /// The convolution of `x` (`[N, C, H, W]`) with `weights` (`K x C`), plus
-/// `bias` (`K` values) when given: `[N, K, H, W]`.
-pub fn forward(x: &[f32], dims: Dims, weights: &WinogradWeights, bias: Option<&[f32]>) -> Vec<f32> {
+/// `bias` (`K` values) when given, through a ReLU when `relu`:
+/// `[N, K, H, W]`.
+pub fn forward(x: &[f32], dims: Dims, weights: &WinogradWeights, bias: Option<&[f32]>, relu: bool) -> Vec<f32> {
     assert_eq!(x.len(), dims.len(), "input of shape {dims:?}");
     assert_eq!(dims.c, weights.c, "input channels vs weights");
     let k = weights.k;
@@ -130,30 +191,30 @@ pub fn forward(x: &[f32], dims: Dims, weights: &WinogradWeights, bias: Option<&[
     if dims.is_empty() || k == 0 {
         return y;
     }
-    let (tiles_h, tiles_w) = (dims.h.div_ceil(2), dims.w.div_ceil(2));
+    let (tiles_h, tiles_w) = (dims.h.div_ceil(TILE), dims.w.div_ceil(TILE));
     let band_rows = band_rows(tiles_h, tiles_w, dims.c + k);
     let bands: Vec<(usize, usize)> =
         (0..dims.n).flat_map(|n| (0..tiles_h).step_by(band_rows).map(move |t0| (n, t0))).collect();
     let out = SharedOut(y.as_mut_ptr());
     let tiles_max = band_rows * tiles_w;
-    bands.into_par_iter().for_each_init(
-        || Scratch::new(dims.c, k, tiles_max, dims.w),
-        |scratch, (n, t0)| {
-            let t1 = (t0 + band_rows).min(tiles_h);
-            let image = &x[n * dims.c * dims.h * dims.w..(n + 1) * dims.c * dims.h * dims.w];
-            let out = out;
-            // SAFETY: the offset is image n's first output value.
-            let image_out = SharedOut(unsafe { out.0.add(n * k * dims.h * dims.w) });
-            band(image, dims, weights, bias, t0, t1, scratch, image_out);
-        },
-    );
+    bands.into_par_iter().for_each(|(n, t0)| {
+        let t1 = (t0 + band_rows).min(tiles_h);
+        let image = &x[n * dims.c * dims.h * dims.w..(n + 1) * dims.c * dims.h * dims.w];
+        let out = out;
+        // SAFETY: the offset is image n's first output value.
+        let image_out = SharedOut(unsafe { out.0.add(n * k * dims.h * dims.w) });
+        SCRATCH.with_borrow_mut(|scratch| {
+            scratch.fit(dims.c, k, tiles_max, dims.w);
+            band(image, dims, weights, bias, relu, t0, t1, scratch, image_out);
+        });
+    });
     y
 }
 
 /// `x`'s gradient for the convolution with weights `[K, C, 3, 3]`, given
 /// the output gradient `dy` (`[N, K, H, W]`): `[N, C, H, W]`.
 pub fn input_grad(dy: &[f32], dims: Dims, flipped: &WinogradWeights) -> Vec<f32> {
-    forward(dy, dims, flipped, None)
+    forward(dy, dims, flipped, None, false)
 }
 
 /// The weights' gradient `[K, C, 3, 3]` given the input `x` (`[N, C, H, W]`)
@@ -234,11 +295,11 @@ pub fn bias_grad(dy: &[f32], dims: Dims) -> Vec<f32> {
 }
 
 /// Tile rows per band: enough tiles for the matrix products to run at
-/// speed, few enough that a band's transformed input and output (16 (C+K)
+/// speed, few enough that a band's transformed input and output (36 (C+K)
 /// values per tile) stay near 16 MB, and at least two bands per thread
 /// when the image allows, so both cores stay busy.
 fn band_rows(tiles_h: usize, tiles_w: usize, channels: usize) -> usize {
-    let tiles = (4_194_304 / (16 * channels)).clamp(64, 8192);
+    let tiles = (8_388_608 / (XI * channels)).clamp(256, 8192);
     let by_size = tiles.div_ceil(tiles_w).max(1);
     let by_threads = tiles_h.div_ceil(2 * rayon::current_num_threads()).max(1);
     by_size.min(by_threads)
@@ -249,46 +310,125 @@ fn band_rows(tiles_h: usize, tiles_w: usize, channels: usize) -> usize {
 struct Scratch {
     v: Vec<f32>,
     m: Vec<f32>,
-    /// 4 zero-padded input rows split into even and odd padded columns
-    /// (`tiles_w + 1` each), then their column transform.
-    even: Vec<f32>,
-    odd: Vec<f32>,
-    t_even: Vec<f32>,
-    t_odd: Vec<f32>,
-    /// The output transform's 8 partial rows (`tiles_w` each).
+    /// The 6 zero-padded input rows of a tile row, each split into its 4
+    /// column phases (`tiles_w + 1` values each), then their column
+    /// transform.
+    rows: Vec<f32>,
+    t: Vec<f32>,
+    /// The output transform's partial rows (4 x 6 rows of `tiles_w`) and
+    /// one tile row's 4 output rows, one per column phase.
     s: Vec<f32>,
 }
 
+thread_local! {
+    /// Each thread keeps its buffers between calls: allocating them afresh
+    /// cost more in page faults than the transforms themselves. They only
+    /// grow, to the largest band seen (about 16 MB, see `band_rows`).
+    static SCRATCH: std::cell::RefCell<Scratch> = const {
+        std::cell::RefCell::new(Scratch { v: Vec::new(), m: Vec::new(), rows: Vec::new(), t: Vec::new(), s: Vec::new() })
+    };
+}
+
 impl Scratch {
-    fn new(c: usize, k: usize, tiles: usize, w: usize) -> Self {
-        let n1 = w.div_ceil(2) + 1;
-        Self {
-            v: vec![0.0; 16 * c * tiles],
-            m: vec![0.0; 16 * k * tiles],
-            even: vec![0.0; 4 * n1],
-            odd: vec![0.0; 4 * n1],
-            t_even: vec![0.0; 4 * n1],
-            t_odd: vec![0.0; 4 * n1],
-            s: vec![0.0; 8 * (n1 - 1)],
-        }
+    /// Room for a band of `tiles` tiles of an image `w` wide, `c` input and
+    /// `k` output channels (longer buffers are fine: `band` indexes from
+    /// the start).
+    fn fit(&mut self, c: usize, k: usize, tiles: usize, w: usize) {
+        let n1 = w.div_ceil(TILE) + 1;
+        let grow = |buffer: &mut Vec<f32>, len: usize| {
+            if buffer.len() < len {
+                buffer.resize(len, 0.0);
+            }
+        };
+        grow(&mut self.v, XI * c * tiles);
+        grow(&mut self.m, XI * k * tiles);
+        grow(&mut self.rows, ALPHA * TILE * n1);
+        grow(&mut self.t, ALPHA * TILE * n1);
+        grow(&mut self.s, (TILE * ALPHA + TILE) * (n1 - 1));
     }
+}
+
+/// B^T d for 6 vectors d (one 6-point input transform per index), B^T =
+/// [[4,0,-5,0,1,0],[0,-4,-4,1,1,0],[0,4,-4,-1,1,0],[0,-2,-1,2,1,0],
+/// [0,2,-1,-2,1,0],[0,4,0,-5,0,1]].
+fn input_transform(out: [&mut [f32]; 6], d: [&[f32]; 6]) {
+    let len = out[0].len();
+    let [o0, o1, o2, o3, o4, o5] = out;
+    let (o0, o1, o2, o3, o4, o5) =
+        (&mut o0[..len], &mut o1[..len], &mut o2[..len], &mut o3[..len], &mut o4[..len], &mut o5[..len]);
+    let (d0, d1, d2, d3, d4, d5) = (&d[0][..len], &d[1][..len], &d[2][..len], &d[3][..len], &d[4][..len], &d[5][..len]);
+    for i in 0..len {
+        let (a1_minus_a3, a4_minus_a2) = (d1[i] - d3[i], d4[i] - d2[i]);
+        o0[i] = 4.0 * d0[i] - 5.0 * d2[i] + d4[i];
+        o1[i] = -4.0 * (d1[i] + d2[i]) + d3[i] + d4[i];
+        o2[i] = 4.0 * (d1[i] - d2[i]) - d3[i] + d4[i];
+        o3[i] = -2.0 * a1_minus_a3 + a4_minus_a2;
+        o4[i] = 2.0 * a1_minus_a3 + a4_minus_a2;
+        o5[i] = 4.0 * d1[i] - 5.0 * d3[i] + d5[i];
+    }
+}
+
+/// A^T m for 6 vectors m (one output transform per index), A^T =
+/// [[1,1,1,1,1,0],[0,1,-1,2,-2,0],[0,1,1,4,4,0],[0,1,-1,8,-8,1]], plus `bias`,
+/// clamped at 0 (`floor` = 0) or not (`floor` = -inf).
+fn output_transform(out: [&mut [f32]; 4], m: [&[f32]; 6], bias: f32, floor: f32) {
+    let len = out[0].len();
+    let [o0, o1, o2, o3] = out;
+    let (o0, o1, o2, o3) = (&mut o0[..len], &mut o1[..len], &mut o2[..len], &mut o3[..len]);
+    let (m0, m1, m2, m3, m4, m5) = (&m[0][..len], &m[1][..len], &m[2][..len], &m[3][..len], &m[4][..len], &m[5][..len]);
+    for i in 0..len {
+        let (sum12, diff12, sum34, diff34) = (m1[i] + m2[i], m1[i] - m2[i], m3[i] + m4[i], m3[i] - m4[i]);
+        o0[i] = (m0[i] + sum12 + sum34 + bias).max(floor);
+        o1[i] = (diff12 + 2.0 * diff34 + bias).max(floor);
+        o2[i] = (sum12 + 4.0 * sum34 + bias).max(floor);
+        o3[i] = (diff12 + 8.0 * diff34 + m5[i] + bias).max(floor);
+    }
+}
+
+/// G g for 3 vectors g (one kernel-column transform per index), G =
+/// [[1/4,0,0],[-1/6,-1/6,-1/6],[-1/6,1/6,-1/6],[1/24,1/12,1/6],[1/24,-1/12,1/6],[0,0,1]].
+fn weight_transform(out: [&mut [f32]; 6], g: [&[f32]; 3]) {
+    let len = out[0].len();
+    let [o0, o1, o2, o3, o4, o5] = out;
+    let (o0, o1, o2, o3, o4, o5) =
+        (&mut o0[..len], &mut o1[..len], &mut o2[..len], &mut o3[..len], &mut o4[..len], &mut o5[..len]);
+    let (g0, g1, g2) = (&g[0][..len], &g[1][..len], &g[2][..len]);
+    for i in 0..len {
+        let (outer, middle) = (g0[i] + g2[i], g1[i]);
+        o0[i] = g0[i] / 4.0;
+        o1[i] = -(outer + middle) / 6.0;
+        o2[i] = -(outer - middle) / 6.0;
+        o3[i] = g0[i] / 24.0 + middle / 12.0 + g2[i] / 6.0;
+        o4[i] = g0[i] / 24.0 - middle / 12.0 + g2[i] / 6.0;
+        o5[i] = g2[i];
+    }
+}
+
+/// Six distinct rows `[at, at + len)` of planes `first .. first + 6` of a
+/// buffer of planes of `plane` values each.
+fn six_rows(buffer: &mut [f32], plane: usize, first: usize, at: usize, len: usize) -> [&mut [f32]; 6] {
+    let group = &mut buffer[first * plane..(first + 6) * plane];
+    let mut rows = group.chunks_mut(plane).map(|p| &mut p[at..at + len]);
+    std::array::from_fn(|_| rows.next().expect("six planes"))
 }
 
 /// Output tile rows `[t0, t1)` of one image (`x`, written to `y`, the
 /// image's output `[K, H, W]`): transform the input tiles, multiply,
-/// transform back.
+/// transform back. Winograd F(4x4, 3x3) with the points 0, 1, -1, 2, -2
+/// and infinity (Lavin & Gray's matrices).
 ///
-/// The transforms run along whole tile rows so that they vectorise: the 4
-/// input rows of a tile row are zero-padded (padded column q = input column
-/// q - 1) and split into even and odd padded columns, E[t] = P[2t] and
-/// O[t] = P[2t+1]; tile tx reads P[2tx .. 2tx+4] = E[tx], O[tx], E[tx+1],
-/// O[tx+1].
+/// The transforms run along whole tile rows so that they vectorise: the 6
+/// input rows of a tile row are zero-padded (padded column q = input
+/// column q - 1) and split into 4 column phases, R_r[t] = P[4t + r]; tile
+/// tx reads P[4tx .. 4tx+6] = R_0[tx], R_1[tx], R_2[tx], R_3[tx],
+/// R_0[tx+1], R_1[tx+1].
 #[allow(clippy::too_many_arguments)]
 fn band(
     x: &[f32],
     dims: Dims,
     weights: &WinogradWeights,
     bias: Option<&[f32]>,
+    relu: bool,
     t0: usize,
     t1: usize,
     scratch: &mut Scratch,
@@ -296,73 +436,56 @@ fn band(
 ) {
     let Dims { c, h, w, .. } = dims;
     let k = weights.k;
-    let tw = w.div_ceil(2);
+    let tw = w.div_ceil(TILE);
     let n1 = tw + 1;
+    let row_len = TILE * n1;
     let tiles = (t1 - t0) * tw;
-    let Scratch { v, m, even, odd, t_even, t_odd, s } = scratch;
+    let Scratch { v, m, rows, t, s } = scratch;
 
-    // V = B^T d B, B^T = [[1,0,-1,0],[0,1,1,0],[0,-1,1,0],[0,1,0,-1]].
     for ci in 0..c {
         let plane = &x[ci * h * w..(ci + 1) * h * w];
         for ty in t0..t1 {
-            for r in 0..4 {
-                let (e, o) = (&mut even[r * n1..(r + 1) * n1], &mut odd[r * n1..(r + 1) * n1]);
-                e.fill(0.0);
-                o.fill(0.0);
-                let src_row = (2 * ty + r).wrapping_sub(1);
+            for a in 0..ALPHA {
+                let row = &mut rows[a * row_len..(a + 1) * row_len];
+                row.fill(0.0);
+                let src_row = (TILE * ty + a).wrapping_sub(1);
                 if src_row < h {
-                    // E[t] = x[2t - 1] (E[0] is padding), O[t] = x[2t].
+                    // Input column col is padded column col + 1 = 4t + r:
+                    // columns 4t .. 4t+3 go to R_1[t], R_2[t], R_3[t], R_0[t+1].
+                    let (r0, rest) = row.split_at_mut(n1);
+                    let (r1, rest) = rest.split_at_mut(n1);
+                    let (r2, r3) = rest.split_at_mut(n1);
                     let src = &plane[src_row * w..(src_row + 1) * w];
-                    for (t, pair) in src.chunks(2).enumerate() {
-                        o[t] = pair[0];
-                        if let Some(&next) = pair.get(1) {
-                            e[t + 1] = next;
-                        }
+                    let mut quads = src.chunks_exact(TILE);
+                    for (t, quad) in quads.by_ref().enumerate() {
+                        r1[t] = quad[0];
+                        r2[t] = quad[1];
+                        r3[t] = quad[2];
+                        r0[t + 1] = quad[3];
+                    }
+                    let (t, rest) = (w / TILE, quads.remainder());
+                    for (r, &value) in [r1, r2, r3].into_iter().zip(rest) {
+                        r[t] = value;
                     }
                 }
             }
-            // Columns: T = B^T [row 0; row 1; row 2; row 3].
-            for (rows, t) in [(&*even, &mut *t_even), (&*odd, &mut *t_odd)] {
-                let (d0, rest) = rows.split_at(n1);
-                let (d1, rest) = rest.split_at(n1);
-                let (d2, d3) = rest.split_at(n1);
-                let (t0_, rest) = t.split_at_mut(n1);
-                let (t1_, rest) = rest.split_at_mut(n1);
-                let (t2_, t3_) = rest.split_at_mut(n1);
-                for i in 0..n1 {
-                    t0_[i] = d0[i] - d2[i];
-                    t1_[i] = d1[i] + d2[i];
-                    t2_[i] = d2[i] - d1[i];
-                    t3_[i] = d1[i] - d3[i];
-                }
-            }
-            // Rows: V[4 i + j] from row i of T.
+            // Columns: T = B^T [row 0; ...; row 5], all phases at once.
+            let r: [&[f32]; 6] = std::array::from_fn(|a| &rows[a * row_len..(a + 1) * row_len]);
+            let mut t_rows = t.chunks_mut(row_len);
+            input_transform(std::array::from_fn(|_| t_rows.next().expect("six rows")), r);
+            // Rows: V[6 i + j] from row i of T.
             let at = ci * tiles + (ty - t0) * tw;
-            for i in 0..4 {
-                let (e, o) = (&t_even[i * n1..(i + 1) * n1], &t_odd[i * n1..(i + 1) * n1]);
-                let plane_of = |j: usize| (4 * i + j) * c * tiles + at;
-                let out = &mut v[plane_of(0)..][..tw];
-                for ((d, a), b) in out.iter_mut().zip(&e[..tw]).zip(&e[1..]) {
-                    *d = a - b;
-                }
-                let out = &mut v[plane_of(1)..][..tw];
-                for ((d, a), b) in out.iter_mut().zip(&o[..tw]).zip(&e[1..]) {
-                    *d = a + b;
-                }
-                let out = &mut v[plane_of(2)..][..tw];
-                for ((d, a), b) in out.iter_mut().zip(&e[1..]).zip(&o[..tw]) {
-                    *d = a - b;
-                }
-                let out = &mut v[plane_of(3)..][..tw];
-                for ((d, a), b) in out.iter_mut().zip(&o[..tw]).zip(&o[1..]) {
-                    *d = a - b;
-                }
+            for i in 0..ALPHA {
+                let ti = &t[i * row_len..(i + 1) * row_len];
+                let phase = |r: usize, shift: usize| &ti[r * n1 + shift..r * n1 + shift + tw];
+                let d = [phase(0, 0), phase(1, 0), phase(2, 0), phase(3, 0), phase(0, 1), phase(1, 1)];
+                input_transform(six_rows(v, c * tiles, i * ALPHA, at, tw), d);
             }
         }
     }
 
     // M[xi] (K x P) = U[xi] (K x C) . V[xi] (C x P).
-    for xi in 0..16 {
+    for xi in 0..XI {
         // SAFETY: the three matrices lie inside u, v and m with the strides
         // given (row-major, leading dimensions C, P and P).
         unsafe {
@@ -390,40 +513,42 @@ fn band(
         }
     }
 
-    // Y = A^T M A per tile, A^T = [[1,1,1,0],[0,1,-1,-1]], plus the bias.
+    // Y = A^T M A per tile, plus the bias: down the columns into S (4 x 6
+    // rows of tw), then along the rows into 4 output rows per tile row.
+    let floor = if relu { 0.0 } else { f32::NEG_INFINITY };
     for ko in 0..k {
         let b = bias.map_or(0.0, |b| b[ko]);
         for ty in t0..t1 {
             let at = (ty - t0) * tw;
             let row = |xi: usize| &m[(xi * k + ko) * tiles + at..][..tw];
-            // Columns: S[i][j] = (A^T M)[i][j], 8 rows of tw.
-            for j in 0..4 {
-                let (m0, m1, m2, m3) = (row(j), row(4 + j), row(8 + j), row(12 + j));
-                let (s0, s1) = s.split_at_mut(4 * tw);
-                let (s0, s1) = (&mut s0[j * tw..(j + 1) * tw], &mut s1[j * tw..(j + 1) * tw]);
-                for t in 0..tw {
-                    s0[t] = m0[t] + m1[t] + m2[t];
-                    s1[t] = m1[t] - m2[t] - m3[t];
-                }
+            let (s_cols, s_out) = s.split_at_mut(TILE * ALPHA * tw);
+            for j in 0..ALPHA {
+                let col: [&[f32]; 6] = std::array::from_fn(|a| row(a * ALPHA + j));
+                let mut dst = s_cols.chunks_mut(tw).skip(j).step_by(ALPHA);
+                output_transform(std::array::from_fn(|_| dst.next().expect("four rows")), col, 0.0, f32::NEG_INFINITY);
             }
-            for i in 0..2 {
-                let out_row = 2 * ty + i;
+            for i in 0..TILE {
+                let out_row = TILE * ty + i;
                 if out_row >= h {
                     break;
                 }
-                let si = &s[4 * i * tw..4 * (i + 1) * tw];
-                let (a0, rest) = si.split_at(tw);
-                let (a1, rest) = rest.split_at(tw);
-                let (a2, a3) = rest.split_at(tw);
+                let si: [&[f32]; 6] = std::array::from_fn(|j| &s_cols[(i * ALPHA + j) * tw..][..tw]);
+                let mut y_parts = s_out.chunks_mut(tw);
+                output_transform(std::array::from_fn(|_| y_parts.next().expect("four rows")), si, b, floor);
                 // SAFETY: row out_row of channel ko lies in this image's
-                // output and in this band's rows [2 t0, 2 t1): no other band
+                // output and in this band's rows [4 t0, 4 t1): no other band
                 // touches it.
                 let dst = unsafe { std::slice::from_raw_parts_mut(y.0.add((ko * h + out_row) * w), w) };
-                for (t, pair) in dst.chunks_mut(2).enumerate() {
-                    pair[0] = a0[t] + a1[t] + a2[t] + b;
-                    if let Some(second) = pair.get_mut(1) {
-                        *second = a1[t] - a2[t] - a3[t] + b;
-                    }
+                let (y0, rest) = s_out.split_at(tw);
+                let (y1, rest) = rest.split_at(tw);
+                let (y2, y3) = rest.split_at(tw);
+                let mut quads = dst.chunks_exact_mut(TILE);
+                for (tx, out) in quads.by_ref().enumerate() {
+                    out.copy_from_slice(&[y0[tx], y1[tx], y2[tx], y3[tx]]);
+                }
+                let tx = w / TILE;
+                for (value, phase) in quads.into_remainder().iter_mut().zip([y0, y1, y2]) {
+                    *value = phase[tx];
                 }
             }
         }
@@ -476,12 +601,19 @@ mod tests {
 
     #[test]
     fn forward_matches_the_definition_on_odd_and_even_sizes() {
-        for (n, c, k, h, w) in [(1, 3, 4, 8, 8), (2, 5, 3, 7, 9), (1, 2, 2, 1, 1), (1, 4, 6, 5, 2)] {
+        // Sides of every remainder modulo the 4x4 tile, and a single pixel.
+        for (n, c, k, h, w) in
+            [(1, 3, 4, 8, 8), (2, 5, 3, 7, 9), (1, 2, 2, 1, 1), (1, 4, 6, 5, 2), (1, 3, 5, 11, 7), (1, 6, 3, 6, 3)]
+        {
             let dims = Dims { n, c, h, w };
             let (x, wt, b) = (values(dims.len(), 1), values(k * c * 9, 2), values(k, 3));
-            let got = forward(&x, dims, &WinogradWeights::new(&wt, k, c), Some(&b));
+            let weights = WinogradWeights::new(&wt, k, c);
+            let got = forward(&x, dims, &weights, Some(&b), false);
             let want = naive(&x, dims, &wt, k, &b);
             assert!(max_rel(&got, &want) < 1e-5, "{dims:?} k={k}: {}", max_rel(&got, &want));
+            let relu: Vec<f32> = want.iter().map(|v| v.max(0.0)).collect();
+            assert!(max_rel(&forward(&x, dims, &weights, Some(&b), true), &relu) < 1e-5, "{dims:?} k={k} with ReLU");
+            assert!(relu.iter().any(|&v| v == 0.0) && relu.iter().any(|&v| v > 0.0));
         }
     }
 

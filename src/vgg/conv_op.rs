@@ -32,26 +32,43 @@ use burn::tensor::{Tensor, TensorData};
 use crate::util::tensor::is_host_memory;
 use crate::vgg::conv3x3::{self as kernel, Dims, WinogradWeights};
 
-/// A 3x3 convolution, stride 1, zero padding 1, with bias.
+/// A 3x3 convolution, stride 1, zero padding 1, with bias, and optionally
+/// the ReLU after it (VGG's pairs: one pass over the output instead of two,
+/// and no pre-activation tensor kept for the backward).
 #[cfg_attr(all(feature = "flex", feature = "ndarray"), backend_extension(Flex, NdArray, Autodiff))]
 #[cfg_attr(all(feature = "flex", not(feature = "ndarray")), backend_extension(Flex, Autodiff))]
 #[cfg_attr(all(not(feature = "flex"), feature = "ndarray"), backend_extension(NdArray, Autodiff))]
 pub trait Conv3x3Backend: Backend {
     /// `x` `[N, C, H, W]`, `weight` `[K, C, 3, 3]`, `bias` `[K]` -> `[N, K, H, W]`.
-    fn conv3x3(x: FloatTensor<Self>, weight: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self>;
+    fn conv3x3(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        relu: bool,
+    ) -> FloatTensor<Self>;
 }
 
 #[cfg(feature = "flex")]
 impl Conv3x3Backend for Flex {
-    fn conv3x3(x: FloatTensor<Self>, weight: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
-        host_forward::<Self>(x, weight, bias)
+    fn conv3x3(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        relu: bool,
+    ) -> FloatTensor<Self> {
+        host_forward::<Self>(x, weight, bias, relu)
     }
 }
 
 #[cfg(feature = "ndarray")]
 impl Conv3x3Backend for NdArray {
-    fn conv3x3(x: FloatTensor<Self>, weight: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
-        host_forward::<Self>(x, weight, bias)
+    fn conv3x3(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        relu: bool,
+    ) -> FloatTensor<Self> {
+        host_forward::<Self>(x, weight, bias, relu)
     }
 }
 
@@ -60,15 +77,26 @@ impl Conv3x3Backend for NdArray {
 struct Conv3x3Backward;
 
 impl<B: Backend> Backward<B, 3> for Conv3x3Backward {
-    /// The forward's input and weights.
-    type State = (FloatTensor<B>, FloatTensor<B>);
+    /// The forward's input and weights, and its output when it ends in a
+    /// ReLU.
+    type State = (FloatTensor<B>, FloatTensor<B>, Option<FloatTensor<B>>);
 
     fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
         let [node_x, node_weight, node_bias] = ops.parents;
         let grad = grads.consume::<B>(&ops.node);
-        let (x, weight) = ops.state;
+        let (x, weight, relu_output) = ops.state;
         let device = grad.device();
-        let (dy, dy_dims) = to_host::<B>(grad);
+        let (mut dy, dy_dims) = to_host::<B>(grad);
+        if let Some(y) = relu_output {
+            // Through the ReLU: no gradient where the output was clamped
+            // (relu'(0) = 0, as Burn's relu).
+            let (y, _) = to_host::<B>(y);
+            for (d, &y) in dy.iter_mut().zip(&y) {
+                if y <= 0.0 {
+                    *d = 0.0;
+                }
+            }
+        }
         if let Some(node) = node_x {
             let (w, w_dims) = to_host::<B>(weight);
             let flipped = WinogradWeights::flipped_transposed(&w, w_dims[0], w_dims[1]);
@@ -90,22 +118,33 @@ impl<B: Backend> Backward<B, 3> for Conv3x3Backward {
 }
 
 impl<B: Conv3x3Backend, C: CheckpointStrategy> Conv3x3Backend for Autodiff<B, C> {
-    fn conv3x3(x: FloatTensor<Self>, weight: FloatTensor<Self>, bias: FloatTensor<Self>) -> FloatTensor<Self> {
+    fn conv3x3(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        relu: bool,
+    ) -> FloatTensor<Self> {
         match Conv3x3Backward.prepare::<C>([x.node(), weight.node(), bias.node()]).compute_bound().stateful() {
             OpsKind::Tracked(prep) => {
                 let (x, weight) = (x.into_primitive(), weight.into_primitive());
-                let output = B::conv3x3(x.clone(), weight.clone(), bias.into_primitive());
-                prep.finish((x, weight), output)
+                let output = B::conv3x3(x.clone(), weight.clone(), bias.into_primitive(), relu);
+                let relu_output = relu.then(|| output.clone());
+                prep.finish((x, weight, relu_output), output)
             }
             OpsKind::UnTracked(prep) => {
-                prep.finish(B::conv3x3(x.into_primitive(), weight.into_primitive(), bias.into_primitive()))
+                prep.finish(B::conv3x3(x.into_primitive(), weight.into_primitive(), bias.into_primitive(), relu))
             }
         }
     }
 }
 
 /// The forward on host memory, for any backend whose tensors can be read.
-fn host_forward<B: Backend>(x: FloatTensor<B>, weight: FloatTensor<B>, bias: FloatTensor<B>) -> FloatTensor<B> {
+fn host_forward<B: Backend>(
+    x: FloatTensor<B>,
+    weight: FloatTensor<B>,
+    bias: FloatTensor<B>,
+    relu: bool,
+) -> FloatTensor<B> {
     let device = x.device();
     let (xs, x_dims) = to_host::<B>(x);
     let (w, w_dims) = to_host::<B>(weight);
@@ -113,7 +152,7 @@ fn host_forward<B: Backend>(x: FloatTensor<B>, weight: FloatTensor<B>, bias: Flo
     assert_eq!(x_dims.len(), 4, "conv3x3 takes [N, C, H, W] input, got {x_dims:?}");
     assert_eq!(&w_dims[1..], [x_dims[1], 3, 3], "conv3x3 weights [K, C, 3, 3] for input {x_dims:?}, got {w_dims:?}");
     let weights = WinogradWeights::new(&w, w_dims[0], w_dims[1]);
-    let y = kernel::forward(&xs, dims(&x_dims), &weights, Some(&b));
+    let y = kernel::forward(&xs, dims(&x_dims), &weights, Some(&b), relu);
     from_host::<B>(y, vec![x_dims[0], w_dims[0], x_dims[2], x_dims[3]], &device)
 }
 
@@ -133,23 +172,26 @@ fn from_host<B: Backend>(values: Vec<f32>, shape: Vec<usize>, device: &B::Device
     B::float_from_data(TensorData::new(values, shape), device)
 }
 
-/// `conv`'s forward, through [`conv3x3`] where it applies (a 3x3, stride
+/// `relu(conv(x))`, through [`conv3x3`] where it applies (a 3x3, stride
 /// 1, padding 1 convolution with bias), else through Burn's own `conv2d`.
-pub fn conv3x3_forward(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
+pub fn conv3x3_relu_forward(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
     match &conv.bias {
-        Some(bias) if is_3x3_same(conv) => conv3x3(x, conv.weight.val(), bias.val()),
-        _ => conv.forward(x),
+        Some(bias) if is_3x3_same(conv) => conv3x3(x, conv.weight.val(), bias.val(), true),
+        _ => burn::tensor::activation::relu(conv.forward(x)),
     }
 }
 
-/// A 3x3, stride 1, padding 1 convolution with bias: the Winograd kernel on
-/// the CPU backends (and autodiff over them), Burn's `conv2d` on wgpu.
-pub fn conv3x3(x: Tensor<4>, weight: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
+/// A 3x3, stride 1, padding 1 convolution with bias, then a ReLU when
+/// `relu`: the Winograd kernel on the CPU backends (and autodiff over
+/// them), Burn's `conv2d` on wgpu.
+pub fn conv3x3(x: Tensor<4>, weight: Tensor<4>, bias: Tensor<1>, relu: bool) -> Tensor<4> {
     if !is_host_memory(&x.device()) {
         let options = burn::tensor::ops::ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
-        return burn::tensor::module::conv2d(x, weight, Some(bias), options);
+        let y = burn::tensor::module::conv2d(x, weight, Some(bias), options);
+        return if relu { burn::tensor::activation::relu(y) } else { y };
     }
-    let out = <Dispatch as Conv3x3Backend>::conv3x3(x.into_dispatch(), weight.into_dispatch(), bias.into_dispatch());
+    let out =
+        <Dispatch as Conv3x3Backend>::conv3x3(x.into_dispatch(), weight.into_dispatch(), bias.into_dispatch(), relu);
     Tensor::from_dispatch(out)
 }
 

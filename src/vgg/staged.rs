@@ -7,7 +7,7 @@
 use burn::tensor::Tensor;
 
 use crate::vgg::VggLayer;
-use crate::vgg::conv_op::conv3x3_forward;
+use crate::vgg::conv_op::conv3x3_relu_forward;
 use crate::vgg::model::Model;
 
 /// The ReLU outputs of `model` up to the deepest of `layers`, in network
@@ -25,8 +25,7 @@ pub fn forward(model: &Model, image: Tensor<4>, layers: &[VggLayer], winograd: b
         if let Some(p) = [2, 4, 7, 10].iter().position(|&first| first == i) {
             x = pools[p].forward(x);
         }
-        let y = if winograd { conv3x3_forward(conv, x) } else { conv.forward(x) };
-        x = burn::tensor::activation::relu(y);
+        x = if winograd { conv3x3_relu_forward(conv, x) } else { burn::tensor::activation::relu(conv.forward(x)) };
         out[i] = Some(x.clone());
     }
     out
