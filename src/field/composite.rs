@@ -7,10 +7,11 @@
 use burn::tensor::{Device, Int, Tensor, activation::relu};
 
 use crate::field::grid::RadianceGrid;
+use crate::field::host_render;
 use crate::field::march::{MarchParams, Marcher, SampleBatch};
 use crate::scene::camera::{Camera, NdcParams, Ray};
 use crate::util::image::Image;
-use crate::util::tensor::{floats, indices, select_rows, to_vec};
+use crate::util::tensor::{floats, indices, is_host_memory, select_rows, to_vec};
 
 /// A sample batch uploaded to a device, ready for `composite`.
 pub struct BatchTensors {
@@ -158,13 +159,28 @@ pub fn render_rays(
         opacity: Vec::with_capacity(rays.len()),
     };
     let marcher = Marcher::new(grid);
+    // On the CPU backends the loop of `host_render` (the same arithmetic,
+    // without materialising the graph's per-sample tensors).
+    let sh_host = is_host_memory(&device).then(|| to_vec(sh.clone()));
+    let num_basis = sh.dims()[1] / 3;
     for part in rays.chunks(chunk.max(1)) {
         let batch = marcher.samples(part, params);
-        let bt = BatchTensors::new(&batch, None, &device);
-        let rendered = composite(dens.clone(), sh.clone(), &bt, background);
-        out.rgb.extend(to_vec(rendered.rgb));
-        out.expected_depth.extend(to_vec(rendered.depth));
-        out.opacity.extend(to_vec(rendered.opacity));
+        match &sh_host {
+            Some(sh_host) => {
+                let (rgb, depth, opacity) =
+                    host_render::render_batch(&grid.density_cpu, sh_host, num_basis, &batch, background);
+                out.rgb.extend(rgb);
+                out.expected_depth.extend(depth);
+                out.opacity.extend(opacity);
+            }
+            None => {
+                let bt = BatchTensors::new(&batch, None, &device);
+                let rendered = composite(dens.clone(), sh.clone(), &bt, background);
+                out.rgb.extend(to_vec(rendered.rgb));
+                out.expected_depth.extend(to_vec(rendered.depth));
+                out.opacity.extend(to_vec(rendered.opacity));
+            }
+        }
         out.threshold_depth.extend(batch.threshold_depth);
     }
     out

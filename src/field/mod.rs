@@ -9,5 +9,35 @@ pub mod composite;
 pub mod frozen;
 pub mod grid;
 pub mod host_colour;
+pub mod host_fit;
+pub mod host_render;
 pub mod march;
 pub mod optim;
+
+/// What renders and differentiates the batches of rays: the photoreal
+/// fit's step, the stylization's ray losses (L_ref, the refit's photo
+/// loss) and its image renders.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RayKernel {
+    /// `host` on the CPU backends, `graph` on a GPU.
+    #[default]
+    Auto,
+    /// The Burn graph (`composite::composite`, `frozen::render_colour`) and
+    /// autodiff.
+    Graph,
+    /// The fused plain-Rust passes (`host_fit`, `host_colour`), meant for
+    /// the CPU backends (on a GPU they would read the grid back every step).
+    Host,
+}
+
+impl RayKernel {
+    /// Whether the plain-Rust passes run on `device`.
+    pub fn is_host(self, device: &burn::tensor::Device) -> bool {
+        match self {
+            RayKernel::Auto => crate::util::tensor::is_host_memory(device),
+            RayKernel::Host => true,
+            RayKernel::Graph => false,
+        }
+    }
+}

@@ -1,6 +1,7 @@
 //! Training configuration: TOML files with a default for every field.
 //! Unknown keys and out-of-range values are errors that name the file.
 
+use crate::field::RayKernel;
 use crate::field::march::MarchParams;
 use crate::scene::data::{DatasetKind, LoadOptions};
 use anyhow::{Context, Result, bail};
@@ -105,6 +106,10 @@ pub struct TrainConfig {
     pub checkpoint_every: usize,
     /// Rays per chunk when rendering whole images.
     pub render_chunk: usize,
+    /// What renders and differentiates a step's batch: `auto` (plain Rust,
+    /// `field::host_fit`, on the CPU backends; the Burn graph on a GPU),
+    /// `host` or `graph`.
+    pub ray_kernel: RayKernel,
 }
 
 impl Default for TrainConfig {
@@ -117,6 +122,7 @@ impl Default for TrainConfig {
             optim: OptimConfig::default(),
             checkpoint_every: 1000,
             render_chunk: 8192,
+            ray_kernel: RayKernel::Auto,
         }
     }
 }

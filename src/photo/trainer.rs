@@ -5,13 +5,15 @@
 //! (`march::Marcher`); the rows of the grid those samples touch
 //! (plus their +x/+y/+z neighbours, for total variation) are gathered into a
 //! small leaf tensor that requires grad; the Burn graph renders the batch,
-//! adds the TV terms and back-propagates; RMSprop then updates just those
+//! adds the TV terms and back-propagates (on the CPU backends
+//! `field::host_fit` renders and differentiates the batch in plain Rust
+//! instead, and only the TV terms go through a graph); RMSprop then updates just those
 //! rows of the grid and of its running averages ("lazy" RMSprop, as
 //! Plenoxels' sparse updates). Cost per step is proportional to the batch,
 //! not to the grid (RMSprop and TV: `field::optim`).
 
 use anyhow::{Result, bail};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Int, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use std::path::Path;
@@ -19,6 +21,7 @@ use std::path::Path;
 use crate::field::checkpoint::{self, CheckpointMeta};
 use crate::field::composite::{self, BatchTensors};
 use crate::field::grid::{GridGeometry, RadianceGrid};
+use crate::field::host_fit;
 use crate::field::march::{BlockOccupancy, Marcher, SampleBatch};
 use crate::field::optim::{RmsStart, Rmsprop, RowSubset, TvNorm, log_lerp, total_variation};
 use crate::photo::config::TrainConfig;
@@ -224,33 +227,17 @@ impl Trainer {
         check_buffer_limit(&batch, self.grid.num_basis(), &plain)?;
         let local = step_rows(&self.grid, &batch.corner_rows, &mut self.subset, cfg.optim.tv_fraction, &mut rng);
         let rows_t = indices(self.subset.rows().to_vec(), &plain);
-        let subset = &self.subset;
-        let bt = BatchTensors::new(&batch, Some(&|r: i32| subset.local(r)), &plain);
-
-        let ld = self.grid.density.clone().select(0, rows_t.clone()).autodiff().require_grad();
-        let ls = self.grid.sh.clone().select(0, rows_t.clone()).autodiff().require_grad();
-        let out = composite::composite(ld.clone(), ls.clone(), &bt, self.background);
-        let target_t = floats(target, [n, 3], &plain);
-        let diff = out.rgb - target_t;
-        let mse = (diff.clone() * diff).mean();
-        let mut loss = mse.clone();
-        if cfg.optim.tv_density > 0.0 && local.num_core > 0 {
-            loss = loss + local.total_variation(ld.clone(), &plain) * cfg.optim.tv_density;
-        }
-        if cfg.optim.tv_sh > 0.0 && local.num_core > 0 {
-            loss = loss + local.total_variation(ls.clone(), &plain) * cfg.optim.tv_sh;
-        }
-        let grads = loss.backward();
-        let mse_value = scalar(mse.inner());
+        let (gd, gs, mse_value) = match cfg.ray_kernel.is_host(&plain) {
+            true => self.host_gradients(&batch, &local, &rows_t, &target),
+            false => self.graph_gradients(&batch, &local, &rows_t, target),
+        };
         let (lr_d, lr_s) = self.learning_rates();
-        if let (Some(gd), Some(gs)) = (ld.grad(&grads), ls.grad(&grads)) {
-            let rmsprop = Rmsprop { beta: cfg.optim.rmsprop_beta, eps: cfg.optim.eps, start: RmsStart::Zero };
-            let new_d =
-                ld.inner() + rmsprop.step_rows(&mut self.grid.density, &mut self.state.density, &rows_t, gd, lr_d);
-            rmsprop.step_rows(&mut self.grid.sh, &mut self.state.sh, &rows_t, gs, lr_s);
-            for (r, v) in self.subset.rows().iter().zip(to_vec(new_d)) {
-                self.grid.density_cpu[*r as usize] = v;
-            }
+        let rmsprop = Rmsprop { beta: cfg.optim.rmsprop_beta, eps: cfg.optim.eps, start: RmsStart::Zero };
+        let old_d = self.grid.density.clone().select(0, rows_t.clone());
+        let new_d = old_d + rmsprop.step_rows(&mut self.grid.density, &mut self.state.density, &rows_t, gd, lr_d);
+        rmsprop.step_rows(&mut self.grid.sh, &mut self.state.sh, &rows_t, gs, lr_s);
+        for (r, v) in self.subset.rows().iter().zip(to_vec(new_d)) {
+            self.grid.density_cpu[*r as usize] = v;
         }
         self.step += 1;
         Ok(StepStats {
@@ -259,6 +246,81 @@ impl Trainer {
             max_samples_per_ray: batch.max_samples_per_ray(),
             rows: self.subset.rows().len(),
         })
+    }
+
+    /// The step's gradients (density `[rows, 1]`, SH `[rows, 3 nb]`) and its
+    /// MSE through the Burn graph and autodiff: the renderer, the MSE and
+    /// the TV terms in one graph.
+    fn graph_gradients(
+        &self,
+        batch: &SampleBatch,
+        local: &TvNeighbours,
+        rows_t: &Tensor<1, Int>,
+        target: Vec<f32>,
+    ) -> (Tensor<2>, Tensor<2>, f32) {
+        let (plain, subset) = (self.grid.device(), &self.subset);
+        let bt = BatchTensors::new(batch, Some(&|r: i32| subset.local(r)), &plain);
+        let ld = self.grid.density.clone().select(0, rows_t.clone()).autodiff().require_grad();
+        let ls = self.grid.sh.clone().select(0, rows_t.clone()).autodiff().require_grad();
+        let out = composite::composite(ld.clone(), ls.clone(), &bt, self.background);
+        let target_t = floats(target, [batch.num_rays, 3], &plain);
+        let diff = out.rgb - target_t;
+        let mse = (diff.clone() * diff).mean();
+        let loss = mse.clone() + self.tv_loss(local, &ld, &ls);
+        let grads = loss.backward();
+        // No gradient at all when no ray of the batch met a sample.
+        let zeros = |t: &Tensor<2>| Tensor::zeros(t.dims(), &plain);
+        let gd = ld.grad(&grads).unwrap_or_else(|| zeros(&ld));
+        let gs = ls.grad(&grads).unwrap_or_else(|| zeros(&ls));
+        (gd, gs, scalar(mse.inner()))
+    }
+
+    /// The same by `field::host_fit` (the render, MSE and their gradient in
+    /// one plain-Rust pass per ray), the TV terms' gradients added from
+    /// their own small graph.
+    fn host_gradients(
+        &self,
+        batch: &SampleBatch,
+        local: &TvNeighbours,
+        rows_t: &Tensor<1, Int>,
+        target: &[f32],
+    ) -> (Tensor<2>, Tensor<2>, f32) {
+        let plain = self.grid.device();
+        let rows = self.subset.rows();
+        let nb = self.grid.num_basis();
+        let density: Vec<f32> = rows.iter().map(|&r| self.grid.density_cpu[r as usize]).collect();
+        let sh_rows = self.grid.sh.clone().select(0, rows_t.clone());
+        let corners: Vec<i32> = batch.corner_rows.iter().map(|&r| self.subset.local(r)).collect();
+        let fit =
+            host_fit::mse_gradient(&density, &to_vec(sh_rows.clone()), nb, batch, &corners, target, self.background);
+        let mut gd = floats(fit.density, [rows.len(), 1], &plain);
+        let mut gs = floats(fit.sh, [rows.len(), 3 * nb], &plain);
+        if local.num_core > 0 {
+            let ld = floats(density, [rows.len(), 1], &plain).autodiff().require_grad();
+            let ls = sh_rows.autodiff().require_grad();
+            let tv = self.tv_loss(local, &ld, &ls);
+            let grads = tv.backward();
+            if let Some(g) = ld.grad(&grads) {
+                gd = gd + g;
+            }
+            if let Some(g) = ls.grad(&grads) {
+                gs = gs + g;
+            }
+        }
+        (gd, gs, fit.mse as f32)
+    }
+
+    /// The TV terms on the step's TV rows (zero when there are none).
+    fn tv_loss(&self, local: &TvNeighbours, ld: &Tensor<2>, ls: &Tensor<2>) -> Tensor<1> {
+        let (o, device) = (&self.config.optim, ld.device());
+        let mut loss = Tensor::zeros([1], &device);
+        if o.tv_density > 0.0 && local.num_core > 0 {
+            loss = loss + local.total_variation(ld.clone(), &device) * o.tv_density;
+        }
+        if o.tv_sh > 0.0 && local.num_core > 0 {
+            loss = loss + local.total_variation(ls.clone(), &device) * o.tv_sh;
+        }
+        loss
     }
 
     /// The metadata a checkpoint of this run carries.

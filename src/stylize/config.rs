@@ -36,19 +36,7 @@ pub enum Placement {
     Host,
 }
 
-/// What computes the ray losses' colours and gradients (L_ref, the refit's
-/// photo loss).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum RayKernel {
-    /// `host` on the CPU backends, `graph` on a GPU.
-    Auto,
-    /// The Burn graph (`field::frozen::render_colour`) and autodiff.
-    Graph,
-    /// The fused plain-Rust pass (`field::host_colour`), meant for the CPU
-    /// backends (on a GPU it would read the SH grid back every step).
-    Host,
-}
+pub use crate::field::RayKernel;
 
 /// What L_color's squared error is averaged over.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

@@ -26,7 +26,7 @@ use crate::reference::registration::RegistrationFile;
 use crate::scene::camera::{Camera, NdcParams, Ray, to_ndc};
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
-use crate::stylize::config::{LrSchedule, Placement, RayKernel, StylizeConfig, TransferPixels, WhiteOn};
+use crate::stylize::config::{LrSchedule, Placement, StylizeConfig, TransferPixels, WhiteOn};
 use crate::stylize::field::{
     DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, render_chunks,
     render_gathered,
@@ -715,11 +715,7 @@ impl<'a> Stylizer<'a> {
 
     /// Whether the ray losses run on `field::host_colour` (`ray_kernel`).
     fn host_kernel(&self) -> bool {
-        match self.cfg.ray_kernel {
-            RayKernel::Auto => is_host_memory(&self.device),
-            RayKernel::Host => true,
-            RayKernel::Graph => false,
-        }
+        self.cfg.ray_kernel.is_host(&self.device)
     }
 
     /// The SH grid as host numbers (for `field::host_colour`).

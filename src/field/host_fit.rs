@@ -1,0 +1,216 @@
+//! The photoreal fit's render, MSE and gradient in plain Rust: the CPU
+//! backends' path for a training step (issue 19).
+//!
+//! `composite::composite` builds the renderer as a Burn graph (8 corner
+//! rows gathered per sample for density and for every SH coefficient, rays
+//! padded to the longest, every intermediate materialised) and autodiff
+//! reverses it. Here one loop per ray renders it front to back, takes the
+//! MSE's gradient with respect to its colour, and walks the samples again
+//! for the gradients of density and SH (Plenoxels' CUDA backward does the
+//! same per ray):
+//!
+//! - colour: `dL/dc_i = w_i g`, through `max(., 0)`, into the SH rows with
+//!   the colour weights times the sample's SH basis;
+//! - density: with `tau_i = sigma_i delta_i`, `w_i = T_i (1 - e^-tau_i)`
+//!   and `C = sum_i w_i c_i + T_N bg`, `dC/dtau_i = T_{i+1} c_i - (C -
+//!   sum_{j<=i} w_j c_j)`; `dL/dsigma_i = g . dC/dtau_i delta_i` where the
+//!   interpolated density is positive, into the density rows with the
+//!   trilinear weights.
+//!
+//! The Burn graph stays the path on a GPU and the oracle of the test
+//! `host_fit_gradient_matches_autodiff`. Deterministic: a fixed number of
+//! parts (not one per thread), each summing into its own buffers, added in
+//! part order.
+
+use rayon::prelude::*;
+
+use crate::field::march::SampleBatch;
+
+/// Parts the rays are split into, each with its own gradient buffers
+/// (`rows * (1 + 3 num_basis)` values each: few, as SH degree 2 has 28
+/// values per row).
+const PARTS: usize = 4;
+
+/// The MSE of a batch and its gradients with respect to the step's rows.
+#[derive(Debug, Clone)]
+pub struct FitGradient {
+    /// Mean over rays and channels of the squared colour error.
+    pub mse: f64,
+    /// d(mse)/d(density) per step row.
+    pub density: Vec<f32>,
+    /// d(mse)/d(SH) per step row, `[rows, 3 * num_basis]`.
+    pub sh: Vec<f32>,
+}
+
+/// Renders the rays of `batch` and returns the MSE against `target`
+/// (`[rays * 3]`) with its gradients. The step's rows hold `density`
+/// (`[rows]`) and `sh` (`[rows, 3 * num_basis]`); `local[k]` is the step
+/// row of corner `k` of the batch (`batch.corner_rows[k]` mapped).
+pub fn mse_gradient(
+    density: &[f32],
+    sh: &[f32],
+    num_basis: usize,
+    batch: &SampleBatch,
+    local: &[i32],
+    target: &[f32],
+    background: [f32; 3],
+) -> FitGradient {
+    let rows = density.len();
+    let stride = 3 * num_basis;
+    assert_eq!(sh.len(), rows * stride, "SH rows [{rows}, {stride}]");
+    assert_eq!(local.len(), batch.corner_rows.len(), "one step row per corner");
+    assert_eq!(target.len(), batch.num_rays * 3, "one target colour per ray");
+    let n = batch.num_rays;
+    // d(mse)/d(C) = 2 (C - target) / (3 n).
+    let scale = 2.0 / (3 * n.max(1)) as f32;
+    let per_part = n.div_ceil(PARTS).max(1);
+    let parts: Vec<(Vec<f32>, Vec<f32>, f64)> = (0..n.div_ceil(per_part))
+        .into_par_iter()
+        .map(|p| {
+            let (mut grad_d, mut grad_sh, mut squared) = (vec![0.0f32; rows], vec![0.0f32; rows * stride], 0.0f64);
+            let mut samples = Vec::new();
+            for r in p * per_part..((p + 1) * per_part).min(n) {
+                let rgb = forward_ray(density, sh, num_basis, batch, local, r, background, &mut samples);
+                let mut g = [0.0f32; 3];
+                for ch in 0..3 {
+                    let e = rgb[ch] - target[r * 3 + ch];
+                    squared += (e * e) as f64;
+                    g[ch] = scale * e;
+                }
+                backward_ray(num_basis, batch, local, r, rgb, g, &samples, &mut grad_d, &mut grad_sh);
+            }
+            (grad_d, grad_sh, squared)
+        })
+        .collect();
+    let mut out = FitGradient { mse: 0.0, density: vec![0.0; rows], sh: vec![0.0; rows * stride] };
+    let mut squared = 0.0;
+    for (d, s, e) in parts {
+        out.density.iter_mut().zip(&d).for_each(|(a, b)| *a += b);
+        out.sh.iter_mut().zip(&s).for_each(|(a, b)| *a += b);
+        squared += e;
+    }
+    out.mse = squared / (3 * n.max(1)) as f64;
+    out
+}
+
+/// What the backward needs of one sample.
+#[derive(Debug, Clone, Copy)]
+struct SampleState {
+    /// Whether the interpolated density was positive (else no density gradient).
+    sigma_positive: bool,
+    /// Whether each channel's pre-activation colour was positive.
+    colour_positive: [bool; 3],
+    colour: [f32; 3],
+    weight: f32,
+    /// Transmittance after the sample, T_{i+1}.
+    transmittance_after: f32,
+}
+
+/// Ray `r`'s colour, keeping each sample's state in `samples`.
+#[allow(clippy::too_many_arguments)]
+fn forward_ray(
+    density: &[f32],
+    sh: &[f32],
+    num_basis: usize,
+    batch: &SampleBatch,
+    local: &[i32],
+    r: usize,
+    background: [f32; 3],
+    samples: &mut Vec<SampleState>,
+) -> [f32; 3] {
+    let stride = 3 * num_basis;
+    let (lo, hi) = (batch.ray_offsets[r] as usize, batch.ray_offsets[r + 1] as usize);
+    samples.clear();
+    let (mut rgb, mut optical) = ([0.0f32; 3], 0.0f32);
+    let mut coefficients = [0.0f32; 3 * 16];
+    for s in lo..hi {
+        let corners = s * 8..s * 8 + 8;
+        let rows = &local[corners.clone()];
+        let mut sigma = 0.0f32;
+        for (w, &row) in batch.corner_weights[corners.clone()].iter().zip(rows) {
+            sigma += w * density[row as usize];
+        }
+        let coefficients = &mut coefficients[..stride];
+        coefficients.fill(0.0);
+        for (w, &row) in batch.colour_weights[corners].iter().zip(rows) {
+            for (c, v) in coefficients.iter_mut().zip(&sh[row as usize * stride..(row as usize + 1) * stride]) {
+                *c += w * v;
+            }
+        }
+        let basis = &batch.basis[s * num_basis..(s + 1) * num_basis];
+        let tau = sigma.max(0.0) * batch.delta[s];
+        let transmittance = (-optical).exp();
+        let weight = transmittance * (1.0 - (-tau).exp());
+        optical += tau;
+        let mut colour = [0.0f32; 3];
+        let mut colour_positive = [false; 3];
+        for ch in 0..3 {
+            let pre: f32 =
+                coefficients[ch * num_basis..(ch + 1) * num_basis].iter().zip(basis).map(|(c, b)| c * b).sum::<f32>()
+                    + 0.5;
+            colour_positive[ch] = pre > 0.0;
+            colour[ch] = pre.max(0.0);
+            rgb[ch] += weight * colour[ch];
+        }
+        samples.push(SampleState {
+            sigma_positive: sigma > 0.0,
+            colour_positive,
+            colour,
+            weight,
+            transmittance_after: (-optical).exp(),
+        });
+    }
+    let left = (-optical).exp();
+    for (value, b) in rgb.iter_mut().zip(background) {
+        *value += left * b;
+    }
+    rgb
+}
+
+/// Adds ray `r`'s gradients, given d(loss)/d(colour) `g`, into the step rows.
+#[allow(clippy::too_many_arguments)]
+fn backward_ray(
+    num_basis: usize,
+    batch: &SampleBatch,
+    local: &[i32],
+    r: usize,
+    rgb: [f32; 3],
+    g: [f32; 3],
+    samples: &[SampleState],
+    grad_d: &mut [f32],
+    grad_sh: &mut [f32],
+) {
+    let stride = 3 * num_basis;
+    let lo = batch.ray_offsets[r] as usize;
+    // sum_{j<=i} w_j c_j, so that C - front is what lies behind sample i.
+    let mut front = [0.0f32; 3];
+    for (i, state) in samples.iter().enumerate() {
+        let s = lo + i;
+        let corners = s * 8..s * 8 + 8;
+        let rows = &local[corners.clone()];
+        let mut d_tau = 0.0f32;
+        for ch in 0..3 {
+            front[ch] += state.weight * state.colour[ch];
+            d_tau += g[ch] * (state.transmittance_after * state.colour[ch] - (rgb[ch] - front[ch]));
+        }
+        if state.sigma_positive {
+            let d_sigma = d_tau * batch.delta[s];
+            for (w, &row) in batch.corner_weights[corners.clone()].iter().zip(rows) {
+                grad_d[row as usize] += w * d_sigma;
+            }
+        }
+        let basis = &batch.basis[s * num_basis..(s + 1) * num_basis];
+        for ch in 0..3 {
+            if !state.colour_positive[ch] {
+                continue;
+            }
+            let d_pre = state.weight * g[ch];
+            for (w, &row) in batch.colour_weights[corners.clone()].iter().zip(rows) {
+                let at = row as usize * stride + ch * num_basis;
+                for (gs, b) in grad_sh[at..at + num_basis].iter_mut().zip(basis) {
+                    *gs += w * d_pre * b;
+                }
+            }
+        }
+    }
+}
