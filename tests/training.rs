@@ -148,13 +148,16 @@ fn a_grid_too_large_is_refused_before_allocating() {
 /// figures are the same on every backend): uploads are the batch's sample
 /// lists, its target colours, the step's row indices and TV neighbour lists,
 /// nothing more; reads are the loss and the step's new densities (the host
-/// mirror the march needs), nothing more.
+/// mirror the march needs), nothing more. This is the Burn graph's step, a
+/// GPU's (on the CPU backends `ray_kernel = "auto"` runs `host_fit`, which
+/// reads the step's SH rows instead: host memory either way).
 #[test]
 fn a_training_step_moves_its_batch_not_the_grid() {
     use refnpr::util::transfer;
     let t = TempDir::new("transfers");
     let ds = tiny_scene(&t.path().join("scene"));
-    let cfg = tiny_config(40);
+    let mut cfg = tiny_config(40);
+    cfg.ray_kernel = refnpr::field::RayKernel::Graph;
     let rays = cfg.optim.batch_rays;
     let mut tr = Trainer::new(&ds, cfg, &common::device()).unwrap();
     tr.step_once().unwrap();

@@ -18,6 +18,8 @@
 
 use rayon::prelude::*;
 
+use crate::field::relu;
+
 use crate::field::frozen::FrozenSamples;
 use crate::scene::sh;
 
@@ -133,7 +135,7 @@ fn composite(
     let mut rgb = background.map(|b| b * transmittance);
     for (s, pre) in (lo..).zip(coefficients) {
         for c in 0..3 {
-            rgb[c] += samples.weight[s] * (sh::C0 * pre[c] + 0.5).max(0.0);
+            rgb[c] += samples.weight[s] * relu(sh::C0 * pre[c] + 0.5);
         }
     }
     rgb

@@ -24,6 +24,8 @@
 
 use rayon::prelude::*;
 
+use crate::field::relu;
+
 use crate::field::march::SampleBatch;
 
 /// Parts the rays are split into, each with its own gradient buffers
@@ -138,7 +140,7 @@ fn forward_ray(
             }
         }
         let basis = &batch.basis[s * num_basis..(s + 1) * num_basis];
-        let tau = sigma.max(0.0) * batch.delta[s];
+        let tau = relu(sigma) * batch.delta[s];
         let transmittance = (-optical).exp();
         let weight = transmittance * (1.0 - (-tau).exp());
         optical += tau;
@@ -149,7 +151,7 @@ fn forward_ray(
                 coefficients[ch * num_basis..(ch + 1) * num_basis].iter().zip(basis).map(|(c, b)| c * b).sum::<f32>()
                     + 0.5;
             colour_positive[ch] = pre > 0.0;
-            colour[ch] = pre.max(0.0);
+            colour[ch] = relu(pre);
             rgb[ch] += weight * colour[ch];
         }
         samples.push(SampleState {
@@ -200,11 +202,11 @@ fn backward_ray(
             }
         }
         let basis = &batch.basis[s * num_basis..(s + 1) * num_basis];
-        for ch in 0..3 {
-            if !state.colour_positive[ch] {
+        for (ch, (&g_ch, &positive)) in g.iter().zip(&state.colour_positive).enumerate() {
+            if !positive {
                 continue;
             }
-            let d_pre = state.weight * g[ch];
+            let d_pre = state.weight * g_ch;
             for (w, &row) in batch.colour_weights[corners.clone()].iter().zip(rows) {
                 let at = row as usize * stride + ch * num_basis;
                 for (gs, b) in grad_sh[at..at + num_basis].iter_mut().zip(basis) {

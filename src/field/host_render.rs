@@ -11,6 +11,8 @@
 
 use rayon::prelude::*;
 
+use crate::field::relu;
+
 use crate::field::march::SampleBatch;
 
 /// Rays rendered at once per rayon task.
@@ -77,13 +79,13 @@ fn render_ray(
             }
         }
         let basis = &batch.basis[s * num_basis..(s + 1) * num_basis];
-        let tau = sigma.max(0.0) * batch.delta[s];
+        let tau = relu(sigma) * batch.delta[s];
         let weight = (-optical).exp() * (1.0 - (-tau).exp());
         optical += tau;
         for (ch, value) in rgb.iter_mut().enumerate() {
             let channel = &coefficients[ch * num_basis..(ch + 1) * num_basis];
             let pre: f32 = channel.iter().zip(basis).map(|(c, b)| c * b).sum();
-            *value += weight * (pre + 0.5).max(0.0);
+            *value += weight * relu(pre + 0.5);
         }
         depth += weight * batch.t[s];
     }

@@ -41,3 +41,10 @@ impl RayKernel {
         }
     }
 }
+
+/// `max(x, 0)` that keeps NaN, as Burn's `relu` does: `f32::max` returns 0
+/// for NaN, which would hide a diverged field from the loss checks
+/// (`util::diverged`) in the plain-Rust passes.
+pub(crate) fn relu(x: f32) -> f32 {
+    if x < 0.0 { 0.0 } else { x }
+}

@@ -13,164 +13,179 @@
 // code the extension macro generates names it too.
 #![allow(deprecated)]
 
-#[cfg(feature = "flex")]
-use burn::backend::Flex;
-#[cfg(feature = "ndarray")]
-use burn::backend::NdArray;
-use burn::backend::TensorMetadata;
-use burn::backend::autodiff::Autodiff;
-use burn::backend::autodiff::checkpoint::base::Checkpointer;
-use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
-use burn::backend::autodiff::grads::Gradients;
-use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
-use burn::backend::tensor::FloatTensor;
-use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::nn::PaddingConfig2d;
 use burn::nn::conv::Conv2d;
-use burn::tensor::{Tensor, TensorData};
+use burn::tensor::Tensor;
 
+#[cfg(any(feature = "flex", feature = "ndarray"))]
 use crate::util::tensor::is_host_memory;
-use crate::vgg::conv3x3::{self as kernel, Dims, WinogradWeights};
 
-/// A 3x3 convolution, stride 1, zero padding 1, with bias, and optionally
-/// the ReLU after it (VGG's pairs: one pass over the output instead of two,
-/// and no pre-activation tensor kept for the backward).
-#[cfg_attr(all(feature = "flex", feature = "ndarray"), backend_extension(Flex, NdArray, Autodiff))]
-#[cfg_attr(all(feature = "flex", not(feature = "ndarray")), backend_extension(Flex, Autodiff))]
-#[cfg_attr(all(not(feature = "flex"), feature = "ndarray"), backend_extension(NdArray, Autodiff))]
-pub trait Conv3x3Backend: Backend {
-    /// `x` `[N, C, H, W]`, `weight` `[K, C, 3, 3]`, `bias` `[K]` -> `[N, K, H, W]`.
-    fn conv3x3(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        bias: FloatTensor<Self>,
-        relu: bool,
-    ) -> FloatTensor<Self>;
-}
+/// The operation itself: only builds with a CPU backend need it.
+#[cfg(any(feature = "flex", feature = "ndarray"))]
+mod host_op {
+    #[cfg(feature = "flex")]
+    use burn::backend::Flex;
+    #[cfg(feature = "ndarray")]
+    use burn::backend::NdArray;
+    use burn::backend::TensorMetadata;
+    use burn::backend::autodiff::Autodiff;
+    use burn::backend::autodiff::checkpoint::base::Checkpointer;
+    use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+    use burn::backend::autodiff::grads::Gradients;
+    use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+    use burn::backend::tensor::FloatTensor;
+    use burn::backend::{Backend, backend_extension};
+    use burn::tensor::TensorData;
 
-#[cfg(feature = "flex")]
-impl Conv3x3Backend for Flex {
-    fn conv3x3(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        bias: FloatTensor<Self>,
-        relu: bool,
-    ) -> FloatTensor<Self> {
-        host_forward::<Self>(x, weight, bias, relu)
+    use crate::vgg::conv3x3::{self as kernel, Dims, WinogradWeights};
+
+    /// A 3x3 convolution, stride 1, zero padding 1, with bias, and optionally
+    /// the ReLU after it (VGG's pairs: one pass over the output instead of two,
+    /// and no pre-activation tensor kept for the backward).
+    #[cfg_attr(all(feature = "flex", feature = "ndarray"), backend_extension(Flex, NdArray, Autodiff))]
+    #[cfg_attr(all(feature = "flex", not(feature = "ndarray")), backend_extension(Flex, Autodiff))]
+    #[cfg_attr(all(not(feature = "flex"), feature = "ndarray"), backend_extension(NdArray, Autodiff))]
+    pub trait Conv3x3Backend: Backend {
+        /// `x` `[N, C, H, W]`, `weight` `[K, C, 3, 3]`, `bias` `[K]` -> `[N, K, H, W]`.
+        fn conv3x3(
+            x: FloatTensor<Self>,
+            weight: FloatTensor<Self>,
+            bias: FloatTensor<Self>,
+            relu: bool,
+        ) -> FloatTensor<Self>;
     }
-}
 
-#[cfg(feature = "ndarray")]
-impl Conv3x3Backend for NdArray {
-    fn conv3x3(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        bias: FloatTensor<Self>,
-        relu: bool,
-    ) -> FloatTensor<Self> {
-        host_forward::<Self>(x, weight, bias, relu)
+    #[cfg(feature = "flex")]
+    impl Conv3x3Backend for Flex {
+        fn conv3x3(
+            x: FloatTensor<Self>,
+            weight: FloatTensor<Self>,
+            bias: FloatTensor<Self>,
+            relu: bool,
+        ) -> FloatTensor<Self> {
+            host_forward::<Self>(x, weight, bias, relu)
+        }
     }
-}
 
-/// The backward step: the kernel's input, weight and bias gradients.
-#[derive(Debug)]
-struct Conv3x3Backward;
+    #[cfg(feature = "ndarray")]
+    impl Conv3x3Backend for NdArray {
+        fn conv3x3(
+            x: FloatTensor<Self>,
+            weight: FloatTensor<Self>,
+            bias: FloatTensor<Self>,
+            relu: bool,
+        ) -> FloatTensor<Self> {
+            host_forward::<Self>(x, weight, bias, relu)
+        }
+    }
 
-impl<B: Backend> Backward<B, 3> for Conv3x3Backward {
-    /// The forward's input and weights, and its output when it ends in a
-    /// ReLU.
-    type State = (FloatTensor<B>, FloatTensor<B>, Option<FloatTensor<B>>);
+    /// The backward step: the kernel's input, weight and bias gradients.
+    #[derive(Debug)]
+    struct Conv3x3Backward;
 
-    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
-        let [node_x, node_weight, node_bias] = ops.parents;
-        let grad = grads.consume::<B>(&ops.node);
-        let (x, weight, relu_output) = ops.state;
-        let device = grad.device();
-        let (mut dy, dy_dims) = to_host::<B>(grad);
-        if let Some(y) = relu_output {
-            // Through the ReLU: no gradient where the output was clamped
-            // (relu'(0) = 0, as Burn's relu).
-            let (y, _) = to_host::<B>(y);
-            for (d, &y) in dy.iter_mut().zip(&y) {
-                if y <= 0.0 {
-                    *d = 0.0;
+    impl<B: Backend> Backward<B, 3> for Conv3x3Backward {
+        /// The forward's input and weights, and its output when it ends in a
+        /// ReLU.
+        type State = (FloatTensor<B>, FloatTensor<B>, Option<FloatTensor<B>>);
+
+        fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+            let [node_x, node_weight, node_bias] = ops.parents;
+            let grad = grads.consume::<B>(&ops.node);
+            let (x, weight, relu_output) = ops.state;
+            let device = grad.device();
+            let (mut dy, dy_dims) = to_host::<B>(grad);
+            if let Some(y) = relu_output {
+                // Through the ReLU: no gradient where the output was clamped
+                // (relu'(0) = 0, as Burn's relu).
+                let (y, _) = to_host::<B>(y);
+                for (d, &y) in dy.iter_mut().zip(&y) {
+                    if y <= 0.0 {
+                        *d = 0.0;
+                    }
+                }
+            }
+            if let Some(node) = node_x {
+                let (w, w_dims) = to_host::<B>(weight);
+                let flipped = WinogradWeights::flipped_transposed(&w, w_dims[0], w_dims[1]);
+                let dx = kernel::input_grad(&dy, dims(&dy_dims), &flipped);
+                let x_dims = [dy_dims[0], w_dims[1], dy_dims[2], dy_dims[3]];
+                grads.register::<B>(node.id, from_host::<B>(dx, x_dims.to_vec(), &device));
+            }
+            if let Some(node) = node_weight {
+                let (xs, x_dims) = to_host::<B>(x);
+                let k = dy_dims[1];
+                let dw = kernel::weight_grad(&xs, dims(&x_dims), &dy, k);
+                grads.register::<B>(node.id, from_host::<B>(dw, vec![k, x_dims[1], 3, 3], &device));
+            }
+            if let Some(node) = node_bias {
+                let db = kernel::bias_grad(&dy, dims(&dy_dims));
+                grads.register::<B>(node.id, from_host::<B>(db, vec![dy_dims[1]], &device));
+            }
+        }
+    }
+
+    impl<B: Conv3x3Backend, C: CheckpointStrategy> Conv3x3Backend for Autodiff<B, C> {
+        fn conv3x3(
+            x: FloatTensor<Self>,
+            weight: FloatTensor<Self>,
+            bias: FloatTensor<Self>,
+            relu: bool,
+        ) -> FloatTensor<Self> {
+            match Conv3x3Backward.prepare::<C>([x.node(), weight.node(), bias.node()]).compute_bound().stateful() {
+                OpsKind::Tracked(prep) => {
+                    let (x, weight) = (x.into_primitive(), weight.into_primitive());
+                    let output = B::conv3x3(x.clone(), weight.clone(), bias.into_primitive(), relu);
+                    let relu_output = relu.then(|| output.clone());
+                    prep.finish((x, weight, relu_output), output)
+                }
+                OpsKind::UnTracked(prep) => {
+                    prep.finish(B::conv3x3(x.into_primitive(), weight.into_primitive(), bias.into_primitive(), relu))
                 }
             }
         }
-        if let Some(node) = node_x {
-            let (w, w_dims) = to_host::<B>(weight);
-            let flipped = WinogradWeights::flipped_transposed(&w, w_dims[0], w_dims[1]);
-            let dx = kernel::input_grad(&dy, dims(&dy_dims), &flipped);
-            let x_dims = [dy_dims[0], w_dims[1], dy_dims[2], dy_dims[3]];
-            grads.register::<B>(node.id, from_host::<B>(dx, x_dims.to_vec(), &device));
-        }
-        if let Some(node) = node_weight {
-            let (xs, x_dims) = to_host::<B>(x);
-            let k = dy_dims[1];
-            let dw = kernel::weight_grad(&xs, dims(&x_dims), &dy, k);
-            grads.register::<B>(node.id, from_host::<B>(dw, vec![k, x_dims[1], 3, 3], &device));
-        }
-        if let Some(node) = node_bias {
-            let db = kernel::bias_grad(&dy, dims(&dy_dims));
-            grads.register::<B>(node.id, from_host::<B>(db, vec![dy_dims[1]], &device));
-        }
     }
-}
 
-impl<B: Conv3x3Backend, C: CheckpointStrategy> Conv3x3Backend for Autodiff<B, C> {
-    fn conv3x3(
-        x: FloatTensor<Self>,
-        weight: FloatTensor<Self>,
-        bias: FloatTensor<Self>,
+    /// The forward on host memory, for any backend whose tensors can be read.
+    fn host_forward<B: Backend>(
+        x: FloatTensor<B>,
+        weight: FloatTensor<B>,
+        bias: FloatTensor<B>,
         relu: bool,
-    ) -> FloatTensor<Self> {
-        match Conv3x3Backward.prepare::<C>([x.node(), weight.node(), bias.node()]).compute_bound().stateful() {
-            OpsKind::Tracked(prep) => {
-                let (x, weight) = (x.into_primitive(), weight.into_primitive());
-                let output = B::conv3x3(x.clone(), weight.clone(), bias.into_primitive(), relu);
-                let relu_output = relu.then(|| output.clone());
-                prep.finish((x, weight, relu_output), output)
-            }
-            OpsKind::UnTracked(prep) => {
-                prep.finish(B::conv3x3(x.into_primitive(), weight.into_primitive(), bias.into_primitive(), relu))
-            }
-        }
+    ) -> FloatTensor<B> {
+        let device = x.device();
+        let (xs, x_dims) = to_host::<B>(x);
+        let (w, w_dims) = to_host::<B>(weight);
+        let (b, _) = to_host::<B>(bias);
+        assert_eq!(x_dims.len(), 4, "conv3x3 takes [N, C, H, W] input, got {x_dims:?}");
+        assert_eq!(
+            &w_dims[1..],
+            [x_dims[1], 3, 3],
+            "conv3x3 weights [K, C, 3, 3] for input {x_dims:?}, got {w_dims:?}"
+        );
+        let weights = WinogradWeights::new(&w, w_dims[0], w_dims[1]);
+        let y = kernel::forward(&xs, dims(&x_dims), &weights, Some(&b), relu);
+        from_host::<B>(y, vec![x_dims[0], w_dims[0], x_dims[2], x_dims[3]], &device)
+    }
+
+    fn dims(shape: &[usize]) -> Dims {
+        Dims { n: shape[0], c: shape[1], h: shape[2], w: shape[3] }
+    }
+
+    /// A CPU backend's tensor as f32 values and its shape.
+    fn to_host<B: Backend>(tensor: FloatTensor<B>) -> (Vec<f32>, Vec<usize>) {
+        let data = burn::tensor::read_sync(B::float_into_data(tensor)).expect("reading a CPU backend's tensor");
+        let shape = data.shape().to_vec();
+        let values = data.convert::<f32>().try_into_vec::<f32>().expect("f32 values after conversion");
+        (values, shape)
+    }
+
+    fn from_host<B: Backend>(values: Vec<f32>, shape: Vec<usize>, device: &B::Device) -> FloatTensor<B> {
+        B::float_from_data(TensorData::new(values, shape), device)
     }
 }
 
-/// The forward on host memory, for any backend whose tensors can be read.
-fn host_forward<B: Backend>(
-    x: FloatTensor<B>,
-    weight: FloatTensor<B>,
-    bias: FloatTensor<B>,
-    relu: bool,
-) -> FloatTensor<B> {
-    let device = x.device();
-    let (xs, x_dims) = to_host::<B>(x);
-    let (w, w_dims) = to_host::<B>(weight);
-    let (b, _) = to_host::<B>(bias);
-    assert_eq!(x_dims.len(), 4, "conv3x3 takes [N, C, H, W] input, got {x_dims:?}");
-    assert_eq!(&w_dims[1..], [x_dims[1], 3, 3], "conv3x3 weights [K, C, 3, 3] for input {x_dims:?}, got {w_dims:?}");
-    let weights = WinogradWeights::new(&w, w_dims[0], w_dims[1]);
-    let y = kernel::forward(&xs, dims(&x_dims), &weights, Some(&b), relu);
-    from_host::<B>(y, vec![x_dims[0], w_dims[0], x_dims[2], x_dims[3]], &device)
-}
-
-fn dims(shape: &[usize]) -> Dims {
-    Dims { n: shape[0], c: shape[1], h: shape[2], w: shape[3] }
-}
-
-/// A CPU backend's tensor as f32 values and its shape.
-fn to_host<B: Backend>(tensor: FloatTensor<B>) -> (Vec<f32>, Vec<usize>) {
-    let data = burn::tensor::read_sync(B::float_into_data(tensor)).expect("reading a CPU backend's tensor");
-    let shape = data.shape().to_vec();
-    let values = data.convert::<f32>().try_into_vec::<f32>().expect("f32 values after conversion");
-    (values, shape)
-}
-
-fn from_host<B: Backend>(values: Vec<f32>, shape: Vec<usize>, device: &B::Device) -> FloatTensor<B> {
-    B::float_from_data(TensorData::new(values, shape), device)
-}
+#[cfg(any(feature = "flex", feature = "ndarray"))]
+pub use host_op::Conv3x3Backend;
 
 /// `relu(conv(x))`, through [`conv3x3`] where it applies (a 3x3, stride
 /// 1, padding 1 convolution with bias), else through Burn's own `conv2d`.
@@ -185,14 +200,19 @@ pub fn conv3x3_relu_forward(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
 /// `relu`: the Winograd kernel on the CPU backends (and autodiff over
 /// them), Burn's `conv2d` on wgpu.
 pub fn conv3x3(x: Tensor<4>, weight: Tensor<4>, bias: Tensor<1>, relu: bool) -> Tensor<4> {
-    if !is_host_memory(&x.device()) {
-        let options = burn::tensor::ops::ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
-        let y = burn::tensor::module::conv2d(x, weight, Some(bias), options);
-        return if relu { burn::tensor::activation::relu(y) } else { y };
+    #[cfg(any(feature = "flex", feature = "ndarray"))]
+    if is_host_memory(&x.device()) {
+        let out = <burn::backend::Dispatch as Conv3x3Backend>::conv3x3(
+            x.into_dispatch(),
+            weight.into_dispatch(),
+            bias.into_dispatch(),
+            relu,
+        );
+        return Tensor::from_dispatch(out);
     }
-    let out =
-        <Dispatch as Conv3x3Backend>::conv3x3(x.into_dispatch(), weight.into_dispatch(), bias.into_dispatch(), relu);
-    Tensor::from_dispatch(out)
+    let options = burn::tensor::ops::ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
+    let y = burn::tensor::module::conv2d(x, weight, Some(bias), options);
+    if relu { burn::tensor::activation::relu(y) } else { y }
 }
 
 fn is_3x3_same(conv: &Conv2d) -> bool {
