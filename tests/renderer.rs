@@ -171,27 +171,36 @@ fn autodiff_gradients_match_finite_differences() {
     assert_eq!(checked, 16);
 }
 
+/// A 6³ grid over [-1, 1]³ with every third lattice point empty (inactive
+/// corners, colour weights renormalised), densities from -1 to
+/// `max_density - 1` and SH degree 2 coefficients in [-0.3, 0.3], and 40
+/// rays that hit, graze and miss it. Returns the grid, its density and SH
+/// rows, and the rays.
+fn sparse_degree2_grid(max_density: f32) -> (RadianceGrid, Vec<f32>, Vec<f32>, Vec<Ray>) {
+    let geo = GridGeometry::new([6; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
+    let nb = sh::num_basis(2);
+    let coords: Vec<u32> = (0..geo.num_points() as u32).filter(|i| i % 3 != 1).collect();
+    let n = coords.len();
+    let dens: Vec<f32> = (0..n).map(|i| -1.0 + max_density * ((i * 7919) % 13) as f32 / 13.0).collect();
+    let shd: Vec<f32> = (0..n * 3 * nb).map(|i| 0.6 * ((((i * 104_729) % 17) as f32 / 17.0) - 0.5)).collect();
+    let grid = RadianceGrid::from_rows(geo, 2, coords, dens.clone(), shd.clone(), &common::device());
+    let rays = (0..40)
+        .map(|i| {
+            let o = Vec3::new(-2.5, -1.8 + 0.09 * i as f32, 1.9 - 0.1 * i as f32);
+            axis_ray(o, Vec3::new(1.0, 0.2 + 0.01 * i as f32, -0.6 + 0.04 * i as f32))
+        })
+        .collect();
+    (grid, dens, shd, rays)
+}
+
 /// The plain-Rust renderer (`field::host_render`, what views rendered
 /// without autodiff use on the CPU backends) gives the Burn graph's
 /// colours, expected depths and opacities to 1e-5, on a sparse grid with
 /// varied density and SH degree 2, rays that hit, graze and miss.
 #[test]
 fn host_render_matches_the_graph() {
-    let geo = GridGeometry::new([6; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
-    let nb = sh::num_basis(2);
-    // Every third lattice point left empty: corners inactive, colour weights renormalised.
-    let coords: Vec<u32> = (0..geo.num_points() as u32).filter(|i| i % 3 != 1).collect();
-    let n = coords.len();
-    let dens: Vec<f32> = (0..n).map(|i| -1.0 + 12.0 * ((i * 7919) % 13) as f32 / 13.0).collect();
-    let shd: Vec<f32> = (0..n * 3 * nb).map(|i| 0.6 * ((((i * 104_729) % 17) as f32 / 17.0) - 0.5)).collect();
-    let dev = common::device();
-    let grid = RadianceGrid::from_rows(geo, 2, coords, dens.clone(), shd.clone(), &dev);
-    let rays: Vec<Ray> = (0..40)
-        .map(|i| {
-            let o = Vec3::new(-2.5, -1.8 + 0.09 * i as f32, 1.9 - 0.1 * i as f32);
-            axis_ray(o, Vec3::new(1.0, 0.2 + 0.01 * i as f32, -0.6 + 0.04 * i as f32))
-        })
-        .collect();
+    let (grid, dens, shd, rays) = sparse_degree2_grid(12.0);
+    let (n, nb, dev) = (dens.len(), sh::num_basis(2), common::device());
     let p = params(0.25);
     let batch = march::generate_samples(&grid, &rays, &p);
     assert!(batch.num_samples() > 200, "{} samples", batch.num_samples());
@@ -225,20 +234,8 @@ fn host_render_matches_the_graph() {
 /// hit, graze and miss, over negative and positive densities.
 #[test]
 fn host_fit_gradient_matches_autodiff() {
-    let geo = GridGeometry::new([6; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
-    let nb = sh::num_basis(2);
-    let coords: Vec<u32> = (0..geo.num_points() as u32).filter(|i| i % 3 != 1).collect();
-    let n = coords.len();
-    let dens: Vec<f32> = (0..n).map(|i| -0.5 + 3.0 * ((i * 7919) % 13) as f32 / 13.0).collect();
-    let shd: Vec<f32> = (0..n * 3 * nb).map(|i| 0.6 * ((((i * 104_729) % 17) as f32 / 17.0) - 0.5)).collect();
-    let dev = common::device();
-    let grid = RadianceGrid::from_rows(geo, 2, coords, dens.clone(), shd.clone(), &dev);
-    let rays: Vec<Ray> = (0..40)
-        .map(|i| {
-            let o = Vec3::new(-2.5, -1.8 + 0.09 * i as f32, 1.9 - 0.1 * i as f32);
-            axis_ray(o, Vec3::new(1.0, 0.2 + 0.01 * i as f32, -0.6 + 0.04 * i as f32))
-        })
-        .collect();
+    let (grid, dens, shd, rays) = sparse_degree2_grid(3.5);
+    let (n, nb, dev) = (dens.len(), sh::num_basis(2), common::device());
     let batch = march::generate_samples(&grid, &rays, &params(0.25));
     let target: Vec<f32> = (0..rays.len() * 3).map(|i| ((i * 37) % 11) as f32 / 11.0).collect();
     let bg = [0.2, 0.5, 0.9];

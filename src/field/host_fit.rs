@@ -26,6 +26,7 @@ use rayon::prelude::*;
 
 use crate::field::relu;
 
+use crate::field::host_render::sample_values;
 use crate::field::march::SampleBatch;
 
 /// Parts the rays are split into, each with its own gradient buffers
@@ -120,40 +121,20 @@ fn forward_ray(
     background: [f32; 3],
     samples: &mut Vec<SampleState>,
 ) -> [f32; 3] {
-    let stride = 3 * num_basis;
     let (lo, hi) = (batch.ray_offsets[r] as usize, batch.ray_offsets[r + 1] as usize);
     samples.clear();
     let (mut rgb, mut optical) = ([0.0f32; 3], 0.0f32);
-    let mut coefficients = [0.0f32; 3 * 16];
     for s in lo..hi {
-        let corners = s * 8..s * 8 + 8;
-        let rows = &local[corners.clone()];
-        let mut sigma = 0.0f32;
-        for (w, &row) in batch.corner_weights[corners.clone()].iter().zip(rows) {
-            sigma += w * density[row as usize];
-        }
-        let coefficients = &mut coefficients[..stride];
-        coefficients.fill(0.0);
-        for (w, &row) in batch.colour_weights[corners].iter().zip(rows) {
-            for (c, v) in coefficients.iter_mut().zip(&sh[row as usize * stride..(row as usize + 1) * stride]) {
-                *c += w * v;
-            }
-        }
-        let basis = &batch.basis[s * num_basis..(s + 1) * num_basis];
+        let (sigma, pre) = sample_values(density, sh, num_basis, batch, &local[s * 8..s * 8 + 8], s);
         let tau = relu(sigma) * batch.delta[s];
         let transmittance = (-optical).exp();
         let weight = transmittance * (1.0 - (-tau).exp());
         optical += tau;
-        let mut colour = [0.0f32; 3];
-        let mut colour_positive = [false; 3];
-        for ch in 0..3 {
-            let pre: f32 =
-                coefficients[ch * num_basis..(ch + 1) * num_basis].iter().zip(basis).map(|(c, b)| c * b).sum::<f32>()
-                    + 0.5;
-            colour_positive[ch] = pre > 0.0;
-            colour[ch] = relu(pre);
-            rgb[ch] += weight * colour[ch];
+        let colour = pre.map(relu);
+        for (value, c) in rgb.iter_mut().zip(colour) {
+            *value += weight * c;
         }
+        let colour_positive = pre.map(|p| p > 0.0);
         samples.push(SampleState {
             sigma_positive: sigma > 0.0,
             colour_positive,

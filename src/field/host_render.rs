@@ -59,33 +59,15 @@ fn render_ray(
     r: usize,
     background: [f32; 3],
 ) -> ([f32; 3], f32, f32) {
-    let stride = 3 * num_basis;
     let (lo, hi) = (batch.ray_offsets[r] as usize, batch.ray_offsets[r + 1] as usize);
     let (mut rgb, mut depth, mut optical) = ([0.0f32; 3], 0.0f32, 0.0f32);
-    let mut coefficients = [0.0f32; 3 * 16];
     for s in lo..hi {
-        let corners = s * 8..s * 8 + 8;
-        let rows = &batch.corner_rows[corners.clone()];
-        let mut sigma = 0.0f32;
-        for (w, &row) in batch.corner_weights[corners.clone()].iter().zip(rows) {
-            sigma += w * density[row as usize];
-        }
-        let coefficients = &mut coefficients[..stride];
-        coefficients.fill(0.0);
-        for (w, &row) in batch.colour_weights[corners].iter().zip(rows) {
-            let sh_row = &sh[row as usize * stride..(row as usize + 1) * stride];
-            for (c, v) in coefficients.iter_mut().zip(sh_row) {
-                *c += w * v;
-            }
-        }
-        let basis = &batch.basis[s * num_basis..(s + 1) * num_basis];
+        let (sigma, pre) = sample_values(density, sh, num_basis, batch, &batch.corner_rows[s * 8..s * 8 + 8], s);
         let tau = relu(sigma) * batch.delta[s];
         let weight = (-optical).exp() * (1.0 - (-tau).exp());
         optical += tau;
-        for (ch, value) in rgb.iter_mut().enumerate() {
-            let channel = &coefficients[ch * num_basis..(ch + 1) * num_basis];
-            let pre: f32 = channel.iter().zip(basis).map(|(c, b)| c * b).sum();
-            *value += weight * relu(pre + 0.5);
+        for (value, pre) in rgb.iter_mut().zip(pre) {
+            *value += weight * relu(pre);
         }
         depth += weight * batch.t[s];
     }
@@ -94,4 +76,37 @@ fn render_ray(
         *value += left * b;
     }
     (rgb, depth, 1.0 - left)
+}
+
+/// Sample `s`'s interpolated density (before the ReLU) and its colour
+/// before the ReLU, `sum_b coeff_b basis_b + 0.5` per channel, the
+/// coefficients interpolated from the SH rows; `rows` are the sample's 8
+/// corner rows into `density` and `sh` (`[rows, 3 * num_basis]`).
+pub(crate) fn sample_values(
+    density: &[f32],
+    sh: &[f32],
+    num_basis: usize,
+    batch: &SampleBatch,
+    rows: &[i32],
+    s: usize,
+) -> (f32, [f32; 3]) {
+    assert!(num_basis <= 16, "SH degree 3 at most");
+    let stride = 3 * num_basis;
+    let corners = s * 8..s * 8 + 8;
+    let mut sigma = 0.0f32;
+    for (w, &row) in batch.corner_weights[corners.clone()].iter().zip(rows) {
+        sigma += w * density[row as usize];
+    }
+    let mut coefficients = [0.0f32; 3 * 16];
+    let coefficients = &mut coefficients[..stride];
+    for (w, &row) in batch.colour_weights[corners].iter().zip(rows) {
+        for (c, v) in coefficients.iter_mut().zip(&sh[row as usize * stride..(row as usize + 1) * stride]) {
+            *c += w * v;
+        }
+    }
+    let basis = &batch.basis[s * num_basis..(s + 1) * num_basis];
+    let pre = std::array::from_fn(|ch| {
+        coefficients[ch * num_basis..(ch + 1) * num_basis].iter().zip(basis).map(|(c, b)| c * b).sum::<f32>() + 0.5
+    });
+    (sigma, pre)
 }
