@@ -209,7 +209,7 @@ fn staged_forward_matches_the_imported_graph() {
     }
 }
 
-/// The 3x3 convolution operation (`vgg::cpu_ops`: the Winograd kernel on
+/// The 3x3 convolution operation (`vgg::conv_op`: the Winograd kernel on
 /// the CPU backends, Burn's `conv2d` on wgpu) against Burn's `conv2d`,
 /// without and with the fused ReLU: the output and the gradients of the
 /// input, the weights and the bias, to 1e-4 relative (1e-3 on wgpu), on a
@@ -232,7 +232,7 @@ fn conv3x3_op_and_its_gradients_match_burns_conv2d() {
     let run = |ours: bool, relu: bool| {
         let (x, weight, bias) = (x.clone().require_grad(), weight.clone().require_grad(), bias.clone().require_grad());
         let y = if ours {
-            refnpr::vgg::cpu_ops::conv3x3(x.clone(), weight.clone(), bias.clone(), relu)
+            refnpr::vgg::conv_op::conv3x3(x.clone(), weight.clone(), bias.clone(), relu)
         } else {
             let y = conv2d(x.clone(), weight.clone(), Some(bias.clone()), ConvOptions::new([1, 1], [1, 1], [1, 1], 1));
             if relu { burn::tensor::activation::relu(y) } else { y }
@@ -252,38 +252,6 @@ fn conv3x3_op_and_its_gradients_match_burns_conv2d() {
             assert!(err <= common::tol(1e-4), "relu {relu}, {name}: max rel err {err:.2e}");
         }
     }
-}
-
-/// The 2x2 max-pool operation (`vgg::cpu_ops`: `vgg::max_pool`'s kernel on
-/// the CPU backends, Burn's on wgpu) against Burn's `max_pool2d`: the
-/// output and the input gradient, exactly, on a batch of two planes with
-/// odd sides (the last row and column dropped) and no ties.
-#[test]
-fn max_pool_op_and_its_gradient_match_burns() {
-    use burn::tensor::module::max_pool2d;
-    use burn::tensor::ops::MaxPoolOptions;
-    let device = common::backend().autodiff_device();
-    let (n, c, h, w) = (2, 3, 13, 10);
-    // A permutation of distinct values: no window has a tie.
-    let len = n * c * h * w;
-    let values: Vec<f32> = (0..len).map(|i| ((i * 7919) % len) as f32 / len as f32 - 0.5).collect();
-    let x = floats(values, [n, c, h, w], &device);
-    let mut rng = ChaCha8Rng::seed_from_u64(3);
-    let upstream = floats((0..n * c * 6 * 5).map(|_| rng.random::<f32>() - 0.5).collect(), [n, c, 6, 5], &device);
-    let run = |ours: bool| {
-        let x = x.clone().require_grad();
-        let y = match ours {
-            true => refnpr::vgg::cpu_ops::max_pool_2x2(x.clone()),
-            false => max_pool2d(x.clone(), MaxPoolOptions::new([2, 2]).with_stride([2, 2])),
-        };
-        assert_eq!(y.dims(), [n, c, 6, 5]);
-        let grads = (y.clone() * upstream.clone()).sum().backward();
-        (to_vec(y), to_vec(x.grad(&grads).expect("gradient")))
-    };
-    let ((y, g), (y_ref, g_ref)) = (run(true), run(false));
-    assert_eq!(y, y_ref, "pooled values");
-    assert_eq!(g, g_ref, "input gradient");
-    assert_eq!(g.iter().filter(|v| **v != 0.0).count(), n * c * 6 * 5, "one gradient per window");
 }
 
 #[test]

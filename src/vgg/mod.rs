@@ -26,9 +26,8 @@ pub use crate::util::tensor::image_tensor;
 use crate::vgg::model::Model;
 
 pub mod conv3x3;
-pub mod cpu_ops;
+pub mod conv_op;
 pub mod features;
-pub mod max_pool;
 pub mod model;
 pub mod staged;
 
@@ -194,7 +193,7 @@ pub enum VggForward {
     /// requested layer (`vgg::staged`; the same numbers, less work).
     Staged,
     /// As `Staged`, with the 3x3 convolutions run by the project's Winograd
-    /// kernel on the CPU backends (`vgg::conv3x3`, `vgg::cpu_ops`; Burn's
+    /// kernel on the CPU backends (`vgg::conv3x3`, `vgg::conv_op`; Burn's
     /// own convolution on wgpu): the default.
     #[default]
     Winograd,

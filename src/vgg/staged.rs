@@ -7,13 +7,13 @@
 use burn::tensor::Tensor;
 
 use crate::vgg::VggLayer;
-use crate::vgg::cpu_ops::{conv3x3_relu_forward, max_pool_forward};
+use crate::vgg::conv_op::conv3x3_relu_forward;
 use crate::vgg::model::Model;
 
 /// The ReLU outputs of `model` up to the deepest of `layers`, in network
 /// order (13 entries, `None` past the deepest).
-/// `winograd` runs the 3x3 convolutions and the max-pools through
-/// `vgg::cpu_ops` (on the CPU backends; Burn's elsewhere).
+/// `winograd` runs the 3x3 convolutions through `vgg::conv_op` (on the CPU
+/// backends; Burn's `conv2d` elsewhere).
 pub fn forward(model: &Model, image: Tensor<4>, layers: &[VggLayer], winograd: bool) -> Vec<Option<Tensor<4>>> {
     let deepest = layers.iter().map(|l| l.index()).max().unwrap_or(0);
     let (scale, mean) = model.input_constants();
@@ -23,7 +23,7 @@ pub fn forward(model: &Model, image: Tensor<4>, layers: &[VggLayer], winograd: b
     for (i, conv) in convs.iter().enumerate().take(deepest + 1) {
         // A pool sits before the first convolution of stages 2 to 5.
         if let Some(p) = [2, 4, 7, 10].iter().position(|&first| first == i) {
-            x = if winograd { max_pool_forward(pools[p], x) } else { pools[p].forward(x) };
+            x = pools[p].forward(x);
         }
         x = if winograd { conv3x3_relu_forward(conv, x) } else { burn::tensor::activation::relu(conv.forward(x)) };
         out[i] = Some(x.clone());

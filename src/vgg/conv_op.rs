@@ -1,14 +1,13 @@
-//! VGG16's operations on the CPU backends (flex, ndarray) and autodiff over
-//! them: `vgg::conv3x3`'s kernel (with the ReLU after it) and
-//! `vgg::max_pool`'s, each a Burn operation with its own backward.
+//! `vgg::conv3x3`'s kernel as a Burn operation with its own backward, for
+//! the CPU backends (flex, ndarray) and autodiff over them.
 //!
 //! Burn 0.22 picks the backend at run time (`Dispatch`); an operation of
 //! our own is a backend extension trait that the `backend_extension` macro
 //! routes to the backend a tensor lives on. The CPU backends implement it
-//! on host memory, `Autodiff<B>` records backward steps whose gradients are
-//! the kernels'. On wgpu [`conv3x3`] and [`max_pool_2x2`] are Burn's own
-//! `conv2d` and `max_pool2d` (the GPU has its own kernels), and so are the
-//! convolutions and pools of other shapes.
+//! on host memory (`vgg::conv3x3`), `Autodiff<B>` records a backward step
+//! whose gradients are the kernel's. On wgpu [`conv3x3`] is Burn's own
+//! `conv2d` (the GPU has its own convolution kernels), and so are convolutions
+//! other than 3x3 / stride 1 / padding 1.
 
 // NdArray is deprecated upstream and stays a supported backend here; the
 // code the extension macro generates names it too.
@@ -16,7 +15,6 @@
 
 use burn::nn::PaddingConfig2d;
 use burn::nn::conv::Conv2d;
-use burn::nn::pool::MaxPool2d;
 use burn::tensor::Tensor;
 
 #[cfg(any(feature = "flex", feature = "ndarray"))]
@@ -40,31 +38,25 @@ mod host_op {
     use burn::tensor::TensorData;
 
     use crate::vgg::conv3x3::{self as kernel, Dims, WinogradWeights};
-    use crate::vgg::max_pool;
 
-    /// VGG16's layers on host memory.
+    /// A 3x3 convolution, stride 1, zero padding 1, with bias, and optionally
+    /// the ReLU after it (VGG's pairs: one pass over the output instead of two,
+    /// and no pre-activation tensor kept for the backward).
     #[cfg_attr(all(feature = "flex", feature = "ndarray"), backend_extension(Flex, NdArray, Autodiff))]
     #[cfg_attr(all(feature = "flex", not(feature = "ndarray")), backend_extension(Flex, Autodiff))]
     #[cfg_attr(all(not(feature = "flex"), feature = "ndarray"), backend_extension(NdArray, Autodiff))]
-    pub trait VggCpuBackend: Backend {
-        /// A 3x3 convolution, stride 1, zero padding 1, with bias, and
-        /// optionally the ReLU after it (VGG's pairs: one pass over the
-        /// output instead of two, and no pre-activation tensor kept for the
-        /// backward): `x` `[N, C, H, W]`, `weight` `[K, C, 3, 3]`, `bias`
-        /// `[K]` -> `[N, K, H, W]`.
+    pub trait Conv3x3Backend: Backend {
+        /// `x` `[N, C, H, W]`, `weight` `[K, C, 3, 3]`, `bias` `[K]` -> `[N, K, H, W]`.
         fn conv3x3(
             x: FloatTensor<Self>,
             weight: FloatTensor<Self>,
             bias: FloatTensor<Self>,
             relu: bool,
         ) -> FloatTensor<Self>;
-
-        /// A 2x2, stride 2 max-pool (floor): `[N, C, H, W]` -> `[N, C, H/2, W/2]`.
-        fn max_pool_2x2(x: FloatTensor<Self>) -> FloatTensor<Self>;
     }
 
     #[cfg(feature = "flex")]
-    impl VggCpuBackend for Flex {
+    impl Conv3x3Backend for Flex {
         fn conv3x3(
             x: FloatTensor<Self>,
             weight: FloatTensor<Self>,
@@ -72,15 +64,11 @@ mod host_op {
             relu: bool,
         ) -> FloatTensor<Self> {
             host_forward::<Self>(x, weight, bias, relu)
-        }
-
-        fn max_pool_2x2(x: FloatTensor<Self>) -> FloatTensor<Self> {
-            host_max_pool::<Self>(x)
         }
     }
 
     #[cfg(feature = "ndarray")]
-    impl VggCpuBackend for NdArray {
+    impl Conv3x3Backend for NdArray {
         fn conv3x3(
             x: FloatTensor<Self>,
             weight: FloatTensor<Self>,
@@ -88,18 +76,14 @@ mod host_op {
             relu: bool,
         ) -> FloatTensor<Self> {
             host_forward::<Self>(x, weight, bias, relu)
-        }
-
-        fn max_pool_2x2(x: FloatTensor<Self>) -> FloatTensor<Self> {
-            host_max_pool::<Self>(x)
         }
     }
 
     /// The backward step: the kernel's input, weight and bias gradients.
     #[derive(Debug)]
-    struct ConvBackward;
+    struct Conv3x3Backward;
 
-    impl<B: Backend> Backward<B, 3> for ConvBackward {
+    impl<B: Backend> Backward<B, 3> for Conv3x3Backward {
         /// The forward's input and weights, and its output when it ends in a
         /// ReLU.
         type State = (FloatTensor<B>, FloatTensor<B>, Option<FloatTensor<B>>);
@@ -140,36 +124,14 @@ mod host_op {
         }
     }
 
-    /// The max-pool's backward: each output's gradient to its window's
-    /// maximum, found again in the kept input.
-    #[derive(Debug)]
-    struct MaxPoolBackward;
-
-    impl<B: Backend> Backward<B, 1> for MaxPoolBackward {
-        /// The forward's input.
-        type State = FloatTensor<B>;
-
-        fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
-            let [node_x] = ops.parents;
-            let grad = grads.consume::<B>(&ops.node);
-            if let Some(node) = node_x {
-                let device = grad.device();
-                let (dy, _) = to_host::<B>(grad);
-                let (x, x_dims) = to_host::<B>(ops.state);
-                let dx = max_pool::input_grad(&x, dims(&x_dims), &dy);
-                grads.register::<B>(node.id, from_host::<B>(dx, x_dims, &device));
-            }
-        }
-    }
-
-    impl<B: VggCpuBackend, C: CheckpointStrategy> VggCpuBackend for Autodiff<B, C> {
+    impl<B: Conv3x3Backend, C: CheckpointStrategy> Conv3x3Backend for Autodiff<B, C> {
         fn conv3x3(
             x: FloatTensor<Self>,
             weight: FloatTensor<Self>,
             bias: FloatTensor<Self>,
             relu: bool,
         ) -> FloatTensor<Self> {
-            match ConvBackward.prepare::<C>([x.node(), weight.node(), bias.node()]).compute_bound().stateful() {
+            match Conv3x3Backward.prepare::<C>([x.node(), weight.node(), bias.node()]).compute_bound().stateful() {
                 OpsKind::Tracked(prep) => {
                     let (x, weight) = (x.into_primitive(), weight.into_primitive());
                     let output = B::conv3x3(x.clone(), weight.clone(), bias.into_primitive(), relu);
@@ -179,17 +141,6 @@ mod host_op {
                 OpsKind::UnTracked(prep) => {
                     prep.finish(B::conv3x3(x.into_primitive(), weight.into_primitive(), bias.into_primitive(), relu))
                 }
-            }
-        }
-
-        fn max_pool_2x2(x: FloatTensor<Self>) -> FloatTensor<Self> {
-            match MaxPoolBackward.prepare::<C>([x.node()]).compute_bound().stateful() {
-                OpsKind::Tracked(prep) => {
-                    let x = x.into_primitive();
-                    let output = B::max_pool_2x2(x.clone());
-                    prep.finish(x, output)
-                }
-                OpsKind::UnTracked(prep) => prep.finish(B::max_pool_2x2(x.into_primitive())),
             }
         }
     }
@@ -216,15 +167,6 @@ mod host_op {
         from_host::<B>(y, vec![x_dims[0], w_dims[0], x_dims[2], x_dims[3]], &device)
     }
 
-    /// The max-pool on host memory.
-    fn host_max_pool<B: Backend>(x: FloatTensor<B>) -> FloatTensor<B> {
-        let device = x.device();
-        let (xs, x_dims) = to_host::<B>(x);
-        assert_eq!(x_dims.len(), 4, "max_pool_2x2 takes [N, C, H, W] input, got {x_dims:?}");
-        let y = max_pool::forward(&xs, dims(&x_dims));
-        from_host::<B>(y, vec![x_dims[0], x_dims[1], x_dims[2] / 2, x_dims[3] / 2], &device)
-    }
-
     fn dims(shape: &[usize]) -> Dims {
         Dims { n: shape[0], c: shape[1], h: shape[2], w: shape[3] }
     }
@@ -243,7 +185,7 @@ mod host_op {
 }
 
 #[cfg(any(feature = "flex", feature = "ndarray"))]
-pub use host_op::VggCpuBackend;
+pub use host_op::Conv3x3Backend;
 
 /// `relu(conv(x))`, through [`conv3x3`] where it applies (a 3x3, stride
 /// 1, padding 1 convolution with bias), else through Burn's own `conv2d`.
@@ -260,7 +202,7 @@ pub fn conv3x3_relu_forward(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
 pub fn conv3x3(x: Tensor<4>, weight: Tensor<4>, bias: Tensor<1>, relu: bool) -> Tensor<4> {
     #[cfg(any(feature = "flex", feature = "ndarray"))]
     if is_host_memory(&x.device()) {
-        let out = <burn::backend::Dispatch as VggCpuBackend>::conv3x3(
+        let out = <burn::backend::Dispatch as Conv3x3Backend>::conv3x3(
             x.into_dispatch(),
             weight.into_dispatch(),
             bias.into_dispatch(),
@@ -271,28 +213,6 @@ pub fn conv3x3(x: Tensor<4>, weight: Tensor<4>, bias: Tensor<1>, relu: bool) -> 
     let options = burn::tensor::ops::ConvOptions::new([1, 1], [1, 1], [1, 1], 1);
     let y = burn::tensor::module::conv2d(x, weight, Some(bias), options);
     if relu { burn::tensor::activation::relu(y) } else { y }
-}
-
-/// `pool`'s forward, through [`max_pool_2x2`] where it applies (2x2 kernel,
-/// stride 2, no padding, floor), else through Burn's own `max_pool2d`.
-pub fn max_pool_forward(pool: &MaxPool2d, x: Tensor<4>) -> Tensor<4> {
-    let plain = pool.kernel_size == [2, 2]
-        && pool.stride == [2, 2]
-        && pool.dilation == [1, 1]
-        && !pool.ceil_mode
-        && matches!(pool.padding, PaddingConfig2d::Valid | PaddingConfig2d::Explicit(0, 0, 0, 0));
-    if plain { max_pool_2x2(x) } else { pool.forward(x) }
-}
-
-/// A 2x2, stride 2 max-pool (floor): `vgg::max_pool`'s kernel on the CPU
-/// backends (and autodiff over them), Burn's `max_pool2d` on wgpu.
-pub fn max_pool_2x2(x: Tensor<4>) -> Tensor<4> {
-    #[cfg(any(feature = "flex", feature = "ndarray"))]
-    if is_host_memory(&x.device()) {
-        let out = <burn::backend::Dispatch as VggCpuBackend>::max_pool_2x2(x.into_dispatch());
-        return Tensor::from_dispatch(out);
-    }
-    burn::tensor::module::max_pool2d(x, burn::tensor::ops::MaxPoolOptions::new([2, 2]).with_stride([2, 2]))
 }
 
 fn is_3x3_same(conv: &Conv2d) -> bool {
