@@ -244,7 +244,17 @@ fn host_fit_gradient_matches_autodiff() {
     let step_dens: Vec<f32> = (0..n).map(|k| dens[n - 1 - k]).collect();
     let step_sh: Vec<f32> = (0..n).flat_map(|k| shd[(n - 1 - k) * 3 * nb..(n - k) * 3 * nb].to_vec()).collect();
     let corners: Vec<i32> = batch.corner_rows.iter().map(|&r| local(r)).collect();
-    let host = refnpr::field::host_fit::mse_gradient(&step_dens, &step_sh, nb, &batch, &corners, &target, bg);
+    let fit = |target: &[f32], buffers: &mut refnpr::field::host_fit::FitBuffers| {
+        refnpr::field::host_fit::mse_gradient(&step_dens, &step_sh, nb, &batch, &corners, target, bg, buffers)
+    };
+    // The buffers a trainer keeps between steps: a previous step's gradients
+    // left in them must not leak into the next.
+    let mut buffers = Default::default();
+    let first = fit(&target.iter().rev().copied().collect::<Vec<_>>(), &mut buffers);
+    let host = fit(&target, &mut buffers);
+    let fresh = fit(&target, &mut Default::default());
+    assert!(first.sh != host.sh, "a different target gives different gradients");
+    assert!(host.sh == fresh.sh && host.density == fresh.density, "reused buffers change the gradient");
 
     let bt = BatchTensors::new(&batch, Some(&local), &dev);
     let ld = floats(step_dens, [n, 1], &dev).autodiff().require_grad();

@@ -272,3 +272,102 @@ fn the_fit_is_the_same_bits_on_one_thread_and_on_the_default_pool() {
     assert!(bits(&a.grid.density) == bits(&b.grid.density), "densities differ");
     assert!(bits(&a.grid.sh) == bits(&b.grid.sh), "SH differ");
 }
+
+/// The CPU backends' plain-Rust training step (`field::host_fit`, the TV
+/// gradients and RMSprop on host values) and the Burn graph's step (the
+/// GPU path: autodiff and tensor RMSprop) fit the same grid up to the order
+/// of floating-point sums. RMSprop divides each gradient by its own running
+/// size, so a coefficient whose gradient is a near-cancellation of many
+/// samples can move differently; the losses and nearly all coefficients
+/// must agree, after a few steps with heavy TV terms on half of the rows.
+#[test]
+fn the_host_training_step_matches_the_graph_step() {
+    use refnpr::field::RayKernel;
+    let t = TempDir::new("host-step");
+    let ds = tiny_scene(&t.path().join("scene"));
+    let trainer = |kernel| {
+        let mut cfg = tiny_config(40);
+        cfg.ray_kernel = kernel;
+        (cfg.optim.tv_fraction, cfg.optim.tv_density, cfg.optim.tv_sh) = (0.5, 1e-2, 1e-1);
+        let mut tr = Trainer::new(&ds, cfg, &common::device()).unwrap();
+        let losses: Vec<f32> = (0..4).map(|_| tr.step_once().unwrap().mse).collect();
+        (tr, losses)
+    };
+    let ((host, host_losses), (graph, graph_losses)) = (trainer(RayKernel::Host), trainer(RayKernel::Graph));
+    println!("losses: host {host_losses:?} graph {graph_losses:?}");
+    for (a, b) in host_losses.iter().zip(&graph_losses) {
+        assert!((a - b).abs() <= common::tol(1e-4) * b, "step losses {host_losses:?} vs {graph_losses:?}");
+    }
+    let pairs = [
+        ("density", &host.grid.density, &graph.grid.density),
+        ("sh", &host.grid.sh, &graph.grid.sh),
+        ("density average", &host.state.density, &graph.state.density),
+        ("sh average", &host.state.sh, &graph.state.sh),
+    ];
+    for (name, a, b) in pairs {
+        let (a, b) = (to_vec(a.clone()), to_vec(b.clone()));
+        assert_eq!(a.len(), b.len(), "{name}");
+        let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let errs: Vec<f32> = a.iter().zip(&b).map(|(x, y)| (x - y).abs() / scale).collect();
+        let far = errs.iter().filter(|e| **e > common::tol(1e-4)).count();
+        let worst = errs.iter().fold(0.0f32, |m, e| m.max(*e));
+        println!("{name}: {far} of {} differ by more than 1e-4 of {scale:.2e}; worst {worst:.1e}", errs.len());
+        assert!(far * 1000 <= errs.len(), "{name}: {far} of {} coefficients differ", errs.len());
+        assert!(worst <= 1e-2, "{name}: {worst:.1e} of {scale:.2e}");
+    }
+    assert_eq!(host.grid.density_cpu, to_vec(host.grid.density.clone()), "the host mirror follows the grid");
+}
+
+/// The host versions of the TV gradient and of RMSprop's row step (the CPU
+/// training step's) give what autodiff through `total_variation` and the
+/// tensor `Rmsprop::step_rows` give.
+#[test]
+fn host_tv_gradient_and_rmsprop_match_the_tensor_versions() {
+    use refnpr::field::optim::{self, RmsStart, Rmsprop, TvNorm};
+    use refnpr::util::tensor::{floats, indices, select_rows};
+    let (dev, rows, channels, core) = (common::device(), 60, 4, 25);
+    let values: Vec<f32> = (0..rows * channels).map(|i| ((i * 7919) % 101) as f32 / 50.0 - 1.0).collect();
+    // Centre i's neighbours: other rows, itself (no neighbour), a row shared by several centres.
+    let neighbours: [Vec<i32>; 3] = [
+        (0..core).map(|i| ((i * 13 + 5) % rows) as i32).collect(),
+        (0..core).map(|i| if i % 4 == 0 { i as i32 } else { (rows - 1 - i) as i32 }).collect(),
+        (0..core).map(|i| (30 + i % 3) as i32).collect(),
+    ];
+    let scale = 0.37;
+    let mut host = vec![0.0f32; rows * channels];
+    optim::add_tv_gradient_per_channel(&values, channels, &neighbours, scale, &mut host);
+    let v = floats(values, [rows, channels], &dev).autodiff().require_grad();
+    let centre = v.clone().narrow(0, 0, core);
+    let nbs = neighbours.iter().map(|nb| select_rows(v.clone(), indices(nb.clone(), &dev)));
+    let grads = (optim::total_variation(centre, nbs, TvNorm::PerChannel) * scale).backward();
+    let graph = to_vec(v.grad(&grads).unwrap());
+    let big = graph.iter().fold(0.0f32, |m, g| m.max(g.abs()));
+    let err = host.iter().zip(&graph).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+    println!("TV gradient: max |host - graph| = {err:.2e} of {big:.2e}");
+    assert!(big > 0.1 && err <= common::tol(1e-5) * big, "TV gradient: {err:.2e} of {big:.2e}");
+
+    for start in [RmsStart::Zero, RmsStart::FirstGrad] {
+        let rms = Rmsprop { beta: 0.9, eps: 1e-8, start };
+        let n = 40;
+        let grad: Vec<f32> = (0..n * 3).map(|i| ((i * 31) % 17) as f32 / 8.0 - 1.0).collect();
+        let avg: Vec<f32> = (0..n * 3).map(|i| if i % 5 == 0 { 0.0 } else { (i % 7) as f32 / 7.0 }).collect();
+        let picked: Vec<i32> = (0..n as i32).map(|i| (i * 3 + 1) % 50).collect();
+        let mut param_t = burn::tensor::Tensor::zeros([50, 3], &dev);
+        let mut avg_t = {
+            let mut full = vec![0.0f32; 50 * 3];
+            for (k, &r) in picked.iter().enumerate() {
+                full[r as usize * 3..r as usize * 3 + 3].copy_from_slice(&avg[k * 3..k * 3 + 3]);
+            }
+            floats(full, [50, 3], &dev)
+        };
+        let rows_t = indices(picked.clone(), &dev);
+        let step = to_vec(rms.step_rows(&mut param_t, &mut avg_t, &rows_t, floats(grad.clone(), [n, 3], &dev), 0.5));
+        let (mut host_avg, mut host_step) = (avg.clone(), grad);
+        rms.host_row_steps(&mut host_avg, &mut host_step, 0.5);
+        let new_avg = to_vec(avg_t.select(0, rows_t));
+        for k in 0..n * 3 {
+            assert!((host_step[k] - step[k]).abs() <= common::tol(1e-6), "{start:?} step {k}");
+            assert!((avg[k] + host_avg[k] - new_avg[k]).abs() <= common::tol(1e-6), "{start:?} average {k}");
+        }
+    }
+}

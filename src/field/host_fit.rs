@@ -45,10 +45,39 @@ pub struct FitGradient {
     pub sh: Vec<f32>,
 }
 
+/// The parts' gradient buffers, kept from one step to the next. On fern's
+/// fine grid they hold tens of MB per part; fresh zeroed buffers every
+/// step made the kernel map (and, on the first `+=`, copy-on-write) every
+/// page again, which measured as half of a fern training step
+/// (`perf`: page faults and TLB shootdowns under `backward_ray`).
+#[derive(Debug, Default)]
+pub struct FitBuffers {
+    parts: Vec<PartBuffers>,
+}
+
+#[derive(Debug, Default)]
+struct PartBuffers {
+    density: Vec<f32>,
+    sh: Vec<f32>,
+    samples: Vec<SampleState>,
+}
+
+impl PartBuffers {
+    /// Zeroed gradients for `rows` rows, keeping the allocations.
+    fn reset(&mut self, rows: usize, stride: usize) {
+        self.density.clear();
+        self.density.resize(rows, 0.0);
+        self.sh.clear();
+        self.sh.resize(rows * stride, 0.0);
+    }
+}
+
 /// Renders the rays of `batch` and returns the MSE against `target`
 /// (`[rays * 3]`) with its gradients. The step's rows hold `density`
 /// (`[rows]`) and `sh` (`[rows, 3 * num_basis]`); `local[k]` is the step
 /// row of corner `k` of the batch (`batch.corner_rows[k]` mapped).
+/// `buffers` is scratch space a caller keeps between calls.
+#[allow(clippy::too_many_arguments)]
 pub fn mse_gradient(
     density: &[f32],
     sh: &[f32],
@@ -57,6 +86,7 @@ pub fn mse_gradient(
     local: &[i32],
     target: &[f32],
     background: [f32; 3],
+    buffers: &mut FitBuffers,
 ) -> FitGradient {
     let rows = density.len();
     let stride = 3 * num_basis;
@@ -67,32 +97,51 @@ pub fn mse_gradient(
     // d(mse)/d(C) = 2 (C - target) / (3 n).
     let scale = 2.0 / (3 * n.max(1)) as f32;
     let per_part = n.div_ceil(PARTS).max(1);
-    let parts: Vec<(Vec<f32>, Vec<f32>, f64)> = (0..n.div_ceil(per_part))
-        .into_par_iter()
-        .map(|p| {
-            let (mut grad_d, mut grad_sh, mut squared) = (vec![0.0f32; rows], vec![0.0f32; rows * stride], 0.0f64);
-            let mut samples = Vec::new();
+    let num_parts = n.div_ceil(per_part).max(1);
+    buffers.parts.resize_with(num_parts, PartBuffers::default);
+    let squared: Vec<f64> = buffers.parts[..num_parts]
+        .par_iter_mut()
+        .enumerate()
+        .map(|(p, part)| {
+            part.reset(rows, stride);
+            let mut squared = 0.0f64;
             for r in p * per_part..((p + 1) * per_part).min(n) {
-                let rgb = forward_ray(density, sh, num_basis, batch, local, r, background, &mut samples);
+                let rgb = forward_ray(density, sh, num_basis, batch, local, r, background, &mut part.samples);
                 let mut g = [0.0f32; 3];
                 for ch in 0..3 {
                     let e = rgb[ch] - target[r * 3 + ch];
                     squared += (e * e) as f64;
                     g[ch] = scale * e;
                 }
-                backward_ray(num_basis, batch, local, r, rgb, g, &samples, &mut grad_d, &mut grad_sh);
+                backward_ray(num_basis, batch, local, r, rgb, g, &part.samples, &mut part.density, &mut part.sh);
             }
-            (grad_d, grad_sh, squared)
+            squared
         })
         .collect();
-    let mut out = FitGradient { mse: 0.0, density: vec![0.0; rows], sh: vec![0.0; rows * stride] };
-    let mut squared = 0.0;
-    for (d, s, e) in parts {
-        out.density.iter_mut().zip(&d).for_each(|(a, b)| *a += b);
-        out.sh.iter_mut().zip(&s).for_each(|(a, b)| *a += b);
-        squared += e;
+    let parts = &buffers.parts[..num_parts];
+    let density: Vec<&[f32]> = parts.iter().map(|p| &p.density[..]).collect();
+    let sh: Vec<&[f32]> = parts.iter().map(|p| &p.sh[..]).collect();
+    FitGradient {
+        mse: squared.iter().sum::<f64>() / (3 * n.max(1)) as f64,
+        density: sum_parts(&density, rows),
+        sh: sum_parts(&sh, rows * stride),
     }
-    out.mse = squared / (3 * n.max(1)) as f64;
+}
+
+/// The element-wise sum of the parts' buffers (at least one), added in
+/// part order, so the result does not depend on how the chunks are spread
+/// over threads. Each chunk is written before it is read: a fresh page
+/// read first would be mapped to the zero page and then copied on write.
+fn sum_parts(parts: &[&[f32]], len: usize) -> Vec<f32> {
+    const CHUNK: usize = 1 << 16;
+    let mut out = vec![0.0f32; len];
+    out.par_chunks_mut(CHUNK).enumerate().for_each(|(c, chunk)| {
+        let range = c * CHUNK..c * CHUNK + chunk.len();
+        chunk.copy_from_slice(&parts[0][range.clone()]);
+        for part in &parts[1..] {
+            chunk.iter_mut().zip(&part[range.clone()]).for_each(|(a, b)| *a += b);
+        }
+    });
     out
 }
 

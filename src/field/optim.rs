@@ -8,6 +8,7 @@
 //! scales of density and colour.
 
 use burn::tensor::{IndexingUpdateOp, Int, Tensor};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::util::tensor::assign_rows;
@@ -78,12 +79,36 @@ impl Rmsprop {
         let v_old = avg.clone().select(0, rows.clone());
         let v_new = self.average(v_old.clone(), grad.clone());
         let update = self.normalised(grad, v_new.clone()) * (-lr);
-        let a = take(avg);
-        *avg = assign_rows(a, rows.clone(), v_new - v_old, IndexingUpdateOp::Add);
-        let p = take(param);
-        *param = assign_rows(p, rows.clone(), update.clone(), IndexingUpdateOp::Add);
+        add_rows(avg, rows, v_new - v_old);
+        add_rows(param, rows, update.clone());
         update
     }
+
+    /// [`step_rows`](Self::step_rows)' arithmetic on host values (the CPU
+    /// backends' training step): `avg` holds the rows' running averages and
+    /// `grad` their gradients; on return `grad` holds what to add to the
+    /// rows and `avg` what to add to their averages, the same numbers
+    /// `step_rows` adds (same operations in the same order).
+    pub fn host_row_steps(&self, avg: &mut [f32], grad: &mut [f32], lr: f32) {
+        assert_eq!(avg.len(), grad.len(), "one running average per gradient");
+        avg.par_iter_mut().zip(grad.par_iter_mut()).with_min_len(1 << 14).for_each(|(v, g)| {
+            let sq = *g * *g;
+            let v_new = match self.start {
+                RmsStart::FirstGrad if *v == 0.0 => sq,
+                _ => *v * self.beta + sq * (1.0 - self.beta),
+            };
+            *g = *g / (v_new.sqrt() + self.eps) * (-lr);
+            *v = v_new - *v;
+        });
+    }
+}
+
+/// Adds `values` to the given rows of `slot` (a grid-sized tensor, updated
+/// in place: it is moved out of its slot first, so the backend sees it
+/// uniquely owned instead of copying the grid).
+pub fn add_rows(slot: &mut Tensor<2>, rows: &Tensor<1, Int>, values: Tensor<2>) {
+    let t = take(slot);
+    *slot = assign_rows(t, rows.clone(), values, IndexingUpdateOp::Add);
 }
 
 /// Moves a tensor out of its slot (leaving a 1x1 placeholder).
@@ -117,6 +142,40 @@ pub fn total_variation(centre: Tensor<2>, neighbours: impl Iterator<Item = Tenso
     match norm {
         TvNorm::PerChannel => (sq + 1e-9).sqrt().sum(),
         TvNorm::PerVoxel => (sq.sum_dim(1) + 1e-9).sqrt().sum(),
+    }
+}
+
+/// Adds the gradient of `scale * total_variation(..., TvNorm::PerChannel)`
+/// to `grad`, on host values: `values` and `grad` are `[rows, channels]`;
+/// the first `neighbours[axis].len()` rows are the centres and
+/// `neighbours[axis][i]` the row of centre i's neighbour along each axis
+/// (the centre itself where there is none, which adds nothing). Serial:
+/// a neighbour may be any row, and the TV rows are a tenth of a step's.
+pub fn add_tv_gradient_per_channel(
+    values: &[f32],
+    channels: usize,
+    neighbours: &[Vec<i32>; 3],
+    scale: f32,
+    grad: &mut [f32],
+) {
+    assert_eq!(values.len(), grad.len(), "one gradient per value");
+    let num_core = neighbours[0].len();
+    let mut diffs = [0.0f32; 3];
+    for i in 0..num_core {
+        for ch in 0..channels {
+            let centre = values[i * channels + ch];
+            let mut sq = 0.0f32;
+            for (axis, d) in diffs.iter_mut().enumerate() {
+                *d = values[neighbours[axis][i] as usize * channels + ch] - centre;
+                sq += *d * *d;
+            }
+            // d sqrt(sq + eps) / d d_axis = d_axis / sqrt(sq + eps).
+            let inv = scale / (sq + 1e-9).sqrt();
+            for (axis, d) in diffs.iter().enumerate() {
+                grad[neighbours[axis][i] as usize * channels + ch] += d * inv;
+                grad[i * channels + ch] -= d * inv;
+            }
+        }
     }
 }
 

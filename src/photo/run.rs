@@ -17,6 +17,7 @@ use crate::scene::data::Dataset;
 use crate::util::backend::BackendKind;
 use crate::util::lock::OutputLock;
 use crate::util::memory::peak_rss_mb;
+use crate::util::profile::{self, PartTime};
 use crate::util::progress::{Event, Phase, Progress};
 use crate::util::transfer::{self, PhaseTransfers, Transfers};
 use crate::util::{diverged, files};
@@ -44,6 +45,11 @@ pub struct TrainMetrics {
     /// starts its curve at the step it resumed from).
     #[serde(default)]
     pub loss_curve: Vec<FitPoint>,
+    /// Wall seconds per part of a training step (march, rows, gradient,
+    /// update), summed over the steps after the last upsampling that this
+    /// process ran; `calls` is their number.
+    #[serde(default)]
+    pub step_profile: Vec<PartTime>,
 }
 
 /// One training step's loss.
@@ -82,6 +88,10 @@ pub fn run_training(
     for (phase, t) in &transfers {
         progress.event(Event::Detail(t.describe(phase)));
     }
+    let step_profile = trainer.profile.parts();
+    if !step_profile.is_empty() {
+        progress.event(Event::Detail(format!("final-resolution steps: {}", profile::describe(&step_profile))));
+    }
     let metrics = TrainMetrics {
         test_psnr: report.psnr,
         test_ssim: report.ssim,
@@ -96,6 +106,7 @@ pub fn run_training(
         peak_rss_mb: peak_rss_mb(),
         transfers,
         loss_curve,
+        step_profile,
     };
     files::write_json(&out.join("metrics.json"), &metrics)?;
     Ok(metrics)
@@ -144,6 +155,9 @@ fn fit(
     let mut curve = Vec::with_capacity(total.saturating_sub(trainer.step));
     while trainer.step < total {
         let steady_step = last_upsample.is_none_or(|s| trainer.step > s);
+        if Some(trainer.step) == last_upsample.map(|s| s + 1) {
+            trainer.profile.clear();
+        }
         let m = transfer::measure(|| trainer.step_once());
         let (st, moved) = (m.value?, m.moved);
         diverged::check_loss(st.mse, Phase::Fit, trainer.step, || match saved_at {

@@ -21,13 +21,16 @@ use std::path::Path;
 use crate::field::checkpoint::{self, CheckpointMeta};
 use crate::field::composite::{self, BatchTensors};
 use crate::field::grid::{GridGeometry, RadianceGrid};
-use crate::field::host_fit;
+use crate::field::host_fit::{self, FitBuffers};
 use crate::field::march::{BlockOccupancy, Marcher, SampleBatch};
-use crate::field::optim::{RmsStart, Rmsprop, RowSubset, TvNorm, log_lerp, total_variation};
+use crate::field::optim::{
+    RmsStart, Rmsprop, RowSubset, TvNorm, add_rows, add_tv_gradient_per_channel, log_lerp, total_variation,
+};
 use crate::photo::config::TrainConfig;
 use crate::scene::camera::Ray;
 use crate::scene::data::Dataset;
 use crate::util::backend::max_buffer_bytes;
+use crate::util::profile::StepProfile;
 use crate::util::rng::{Stream, step_rng};
 use crate::util::tensor::{floats, indices, scalar, select_rows, to_vec};
 use crate::util::transfer::human_bytes;
@@ -61,6 +64,11 @@ pub struct Trainer {
     occupancy: Option<BlockOccupancy>,
     /// The rows of the current step (reused between steps).
     subset: RowSubset,
+    /// The plain-Rust gradient pass's buffers (reused between steps).
+    fit_buffers: FitBuffers,
+    /// Wall time per part of a step (march, rows, gradient, update),
+    /// summed over the steps since it was last cleared.
+    pub profile: StepProfile,
 }
 
 /// Numbers of one optimisation step.
@@ -181,6 +189,8 @@ impl Trainer {
             background: dataset.background,
             occupancy: None,
             subset: RowSubset::default(),
+            fit_buffers: FitBuffers::default(),
+            profile: StepProfile::default(),
         }
     }
 
@@ -222,23 +232,21 @@ impl Trainer {
         let rays: Vec<Ray> = picks.iter().map(|&i| self.rays[i]).collect();
         let target: Vec<f32> = picks.iter().flat_map(|&i| self.colours[i]).collect();
 
-        let occupancy = self.occupancy.get_or_insert_with(|| BlockOccupancy::of(&self.grid));
-        let batch = Marcher::with_occupancy(&self.grid, occupancy).samples(&rays, &cfg.march);
+        let profile = std::mem::take(&mut self.profile);
+        let batch = profile.time("march", || {
+            let occupancy = self.occupancy.get_or_insert_with(|| BlockOccupancy::of(&self.grid));
+            Marcher::with_occupancy(&self.grid, occupancy).samples(&rays, &cfg.march)
+        });
         check_buffer_limit(&batch, self.grid.num_basis(), &plain)?;
-        let local = step_rows(&self.grid, &batch.corner_rows, &mut self.subset, cfg.optim.tv_fraction, &mut rng);
-        let rows_t = indices(self.subset.rows().to_vec(), &plain);
-        let (gd, gs, mse_value) = match cfg.ray_kernel.is_host(&plain) {
-            true => self.host_gradients(&batch, &local, &rows_t, &target),
-            false => self.graph_gradients(&batch, &local, &rows_t, target),
+        let (local, rows_t) = profile.time("rows", || {
+            let local = step_rows(&self.grid, &batch.corner_rows, &mut self.subset, cfg.optim.tv_fraction, &mut rng);
+            (local, indices(self.subset.rows().to_vec(), &plain))
+        });
+        let mse_value = match cfg.ray_kernel.is_host(&plain) {
+            true => self.host_step(&batch, &local, &rows_t, &target, &profile),
+            false => self.graph_step(&batch, &local, &rows_t, target, &profile),
         };
-        let (lr_d, lr_s) = self.learning_rates();
-        let rmsprop = Rmsprop { beta: cfg.optim.rmsprop_beta, eps: cfg.optim.eps, start: RmsStart::Zero };
-        let old_d = self.grid.density.clone().select(0, rows_t.clone());
-        let new_d = old_d + rmsprop.step_rows(&mut self.grid.density, &mut self.state.density, &rows_t, gd, lr_d);
-        rmsprop.step_rows(&mut self.grid.sh, &mut self.state.sh, &rows_t, gs, lr_s);
-        for (r, v) in self.subset.rows().iter().zip(to_vec(new_d)) {
-            self.grid.density_cpu[*r as usize] = v;
-        }
+        self.profile = profile;
         self.step += 1;
         Ok(StepStats {
             mse: mse_value,
@@ -246,6 +254,105 @@ impl Trainer {
             max_samples_per_ray: batch.max_samples_per_ray(),
             rows: self.subset.rows().len(),
         })
+    }
+
+    /// The RMSprop optimiser of this run.
+    fn rmsprop(&self) -> Rmsprop {
+        let o = &self.config.optim;
+        Rmsprop { beta: o.rmsprop_beta, eps: o.eps, start: RmsStart::Zero }
+    }
+
+    /// The step through the Burn graph (the GPU path): the gradients by
+    /// autodiff, then RMSprop on the step's rows as tensor operations.
+    /// Returns the batch's MSE.
+    fn graph_step(
+        &mut self,
+        batch: &SampleBatch,
+        local: &TvNeighbours,
+        rows_t: &Tensor<1, Int>,
+        target: Vec<f32>,
+        profile: &StepProfile,
+    ) -> f32 {
+        let (gd, gs, mse) = profile.time("gradient", || self.graph_gradients(batch, local, rows_t, target));
+        profile.time("update", || {
+            let (lr_d, lr_s) = self.learning_rates();
+            let rmsprop = self.rmsprop();
+            let old_d = self.grid.density.clone().select(0, rows_t.clone());
+            let new_d = old_d + rmsprop.step_rows(&mut self.grid.density, &mut self.state.density, rows_t, gd, lr_d);
+            rmsprop.step_rows(&mut self.grid.sh, &mut self.state.sh, rows_t, gs, lr_s);
+            for (r, v) in self.subset.rows().iter().zip(to_vec(new_d)) {
+                self.grid.density_cpu[*r as usize] = v;
+            }
+        });
+        mse
+    }
+
+    /// The same step in plain Rust (the CPU backends): the step's rows and
+    /// their RMSprop averages are read once, `field::host_fit` renders and
+    /// differentiates the batch, the TV gradients and RMSprop's arithmetic
+    /// run on the host values, and the grid and its averages get one
+    /// row-add each. The same numbers as `graph_step` up to the order of
+    /// floating-point sums (test `host_training_step_matches_the_graph_step`).
+    fn host_step(
+        &mut self,
+        batch: &SampleBatch,
+        local: &TvNeighbours,
+        rows_t: &Tensor<1, Int>,
+        target: &[f32],
+        profile: &StepProfile,
+    ) -> f32 {
+        let plain = self.grid.device();
+        let (num_rows, stride) = (self.subset.rows().len(), 3 * self.grid.num_basis());
+        let (mse, mut fit) = profile.time("gradient", || {
+            let density: Vec<f32> = self.subset.rows().iter().map(|&r| self.grid.density_cpu[r as usize]).collect();
+            let sh = to_vec(self.grid.sh.clone().select(0, rows_t.clone()));
+            let corners: Vec<i32> = batch.corner_rows.iter().map(|&r| self.subset.local(r)).collect();
+            let mut fit = host_fit::mse_gradient(
+                &density,
+                &sh,
+                self.grid.num_basis(),
+                batch,
+                &corners,
+                target,
+                self.background,
+                &mut self.fit_buffers,
+            );
+            let o = &self.config.optim;
+            if local.num_core > 0 {
+                let per_row = 1.0 / local.num_core as f32;
+                if o.tv_density > 0.0 {
+                    add_tv_gradient_per_channel(
+                        &density,
+                        1,
+                        &local.neighbours,
+                        o.tv_density * per_row,
+                        &mut fit.density,
+                    );
+                }
+                if o.tv_sh > 0.0 {
+                    add_tv_gradient_per_channel(&sh, stride, &local.neighbours, o.tv_sh * per_row, &mut fit.sh);
+                }
+            }
+            (fit.mse as f32, (density, fit))
+        });
+        profile.time("update", || {
+            let (lr_d, lr_s) = self.learning_rates();
+            let rmsprop = self.rmsprop();
+            let (density, grads) = &mut fit;
+            let mut avg_d = to_vec(self.state.density.clone().select(0, rows_t.clone()));
+            let mut avg_s = to_vec(self.state.sh.clone().select(0, rows_t.clone()));
+            rmsprop.host_row_steps(&mut avg_d, &mut grads.density, lr_d);
+            rmsprop.host_row_steps(&mut avg_s, &mut grads.sh, lr_s);
+            for ((&r, old), step) in self.subset.rows().iter().zip(density.iter()).zip(&grads.density) {
+                self.grid.density_cpu[r as usize] = old + step;
+            }
+            add_rows(&mut self.state.density, rows_t, floats(avg_d, [num_rows, 1], &plain));
+            add_rows(&mut self.state.sh, rows_t, floats(avg_s, [num_rows, stride], &plain));
+            let steps_d = std::mem::take(&mut grads.density);
+            add_rows(&mut self.grid.density, rows_t, floats(steps_d, [num_rows, 1], &plain));
+            add_rows(&mut self.grid.sh, rows_t, floats(std::mem::take(&mut grads.sh), [num_rows, stride], &plain));
+        });
+        mse
     }
 
     /// The step's gradients (density `[rows, 1]`, SH `[rows, 3 nb]`) and its
@@ -273,41 +380,6 @@ impl Trainer {
         let gd = ld.grad(&grads).unwrap_or_else(|| zeros(&ld));
         let gs = ls.grad(&grads).unwrap_or_else(|| zeros(&ls));
         (gd, gs, scalar(mse.inner()))
-    }
-
-    /// The same by `field::host_fit` (the render, MSE and their gradient in
-    /// one plain-Rust pass per ray), the TV terms' gradients added from
-    /// their own small graph.
-    fn host_gradients(
-        &self,
-        batch: &SampleBatch,
-        local: &TvNeighbours,
-        rows_t: &Tensor<1, Int>,
-        target: &[f32],
-    ) -> (Tensor<2>, Tensor<2>, f32) {
-        let plain = self.grid.device();
-        let rows = self.subset.rows();
-        let nb = self.grid.num_basis();
-        let density: Vec<f32> = rows.iter().map(|&r| self.grid.density_cpu[r as usize]).collect();
-        let sh_rows = self.grid.sh.clone().select(0, rows_t.clone());
-        let corners: Vec<i32> = batch.corner_rows.iter().map(|&r| self.subset.local(r)).collect();
-        let fit =
-            host_fit::mse_gradient(&density, &to_vec(sh_rows.clone()), nb, batch, &corners, target, self.background);
-        let mut gd = floats(fit.density, [rows.len(), 1], &plain);
-        let mut gs = floats(fit.sh, [rows.len(), 3 * nb], &plain);
-        if local.num_core > 0 {
-            let ld = floats(density, [rows.len(), 1], &plain).autodiff().require_grad();
-            let ls = sh_rows.autodiff().require_grad();
-            let tv = self.tv_loss(local, &ld, &ls);
-            let grads = tv.backward();
-            if let Some(g) = ld.grad(&grads) {
-                gd = gd + g;
-            }
-            if let Some(g) = ls.grad(&grads) {
-                gs = gs + g;
-            }
-        }
-        (gd, gs, fit.mse as f32)
     }
 
     /// The TV terms on the step's TV rows (zero when there are none).

@@ -9,10 +9,10 @@
 use std::cell::RefCell;
 use std::time::Instant;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// One part's total.
-#[derive(Debug, Clone, Serialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct PartTime {
     pub part: String,
     pub seconds: f64,
