@@ -276,7 +276,7 @@ fn rmsprop_first_gradient_start_and_lazy_rows() {
         opt.step_dense(&mut x, &mut v, grad.clone(), lr);
         let (x0, v0) = (to_vec(x.clone()), to_vec(v.clone()));
         let row1 = grad.clone().narrow(0, 1, 1);
-        opt.step_rows(&mut x, &mut v, &refnpr::util::tensor::indices(vec![1], &d), row1, lr);
+        opt.step_rows(&mut x, &mut v, &[1], &refnpr::util::tensor::indices(vec![1], &d), row1, lr);
         let (x1, v1) = (to_vec(x), to_vec(v));
         assert_eq!(&x1[..3], &x0[..3]);
         assert_eq!(&v1[..3], &v0[..3]);

@@ -361,7 +361,8 @@ fn host_tv_gradient_and_rmsprop_match_the_tensor_versions() {
             floats(full, [50, 3], &dev)
         };
         let rows_t = indices(picked.clone(), &dev);
-        let step = to_vec(rms.step_rows(&mut param_t, &mut avg_t, &rows_t, floats(grad.clone(), [n, 3], &dev), 0.5));
+        let step = rms.step_rows(&mut param_t, &mut avg_t, &picked, &rows_t, floats(grad.clone(), [n, 3], &dev), 0.5);
+        let step = to_vec(step);
         let (mut host_avg, mut host_step) = (avg.clone(), grad);
         rms.host_row_steps(&mut host_avg, &mut host_step, 0.5);
         let new_avg = to_vec(avg_t.select(0, rows_t));

@@ -22,9 +22,13 @@ use crate::field::relu;
 
 use crate::field::frozen::FrozenSamples;
 use crate::scene::sh;
+use crate::util::pool::{BufferPool, sum_in_order};
 
 /// Parts the rays are split into (each with its own gradient buffer).
 const PARTS: usize = 8;
+
+/// The parts' gradient buffers, kept between calls (see `util::pool`).
+static PART_BUFFERS: BufferPool = BufferPool::new(PARTS);
 
 /// For each ray of `rays` (indices into `samples`; all of them when None):
 /// its colour from the degree-0 SH rows `sh` (`[rows * 3]`, interleaved),
@@ -49,7 +53,7 @@ where
     let parts: Vec<(Vec<f32>, f64)> = (0..n.div_ceil(per_part))
         .into_par_iter()
         .map(|p| {
-            let mut grad = vec![0.0f32; slots * 3];
+            let mut grad = PART_BUFFERS.zeroed(slots * 3);
             let mut total = 0.0f64;
             // The ray's interpolated coefficients, kept from the colour for the gradient.
             let mut coefficients: Vec<[f32; 3]> = Vec::new();
@@ -86,11 +90,14 @@ where
             (grad, total)
         })
         .collect();
-    let mut parts = parts.into_iter();
-    let (mut grad, mut total) = parts.next().unwrap_or_else(|| (vec![0.0; slots * 3], 0.0));
-    for (g, t) in parts {
-        grad.iter_mut().zip(&g).for_each(|(a, b)| *a += b);
-        total += t;
+    if parts.is_empty() {
+        return (vec![0.0; slots * 3], 0.0);
+    }
+    let grads: Vec<&[f32]> = parts.iter().map(|(g, _)| &g[..]).collect();
+    let grad = sum_in_order(&grads, slots * 3);
+    let total = parts.iter().map(|(_, t)| t).sum();
+    for (g, _) in parts {
+        PART_BUFFERS.give_back(g);
     }
     (grad, total)
 }

@@ -28,6 +28,7 @@ use crate::field::relu;
 
 use crate::field::host_render::sample_values;
 use crate::field::march::SampleBatch;
+use crate::util::pool::sum_in_order;
 
 /// Parts the rays are split into, each with its own gradient buffers
 /// (`rows * (1 + 3 num_basis)` values each: few, as SH degree 2 has 28
@@ -45,11 +46,9 @@ pub struct FitGradient {
     pub sh: Vec<f32>,
 }
 
-/// The parts' gradient buffers, kept from one step to the next. On fern's
-/// fine grid they hold tens of MB per part; fresh zeroed buffers every
-/// step made the kernel map (and, on the first `+=`, copy-on-write) every
-/// page again, which measured as half of a fern training step
-/// (`perf`: page faults and TLB shootdowns under `backward_ray`).
+/// The parts' gradient buffers, kept from one step to the next by the
+/// trainer: on fern's fine grid they hold tens of MB per part, and fresh
+/// ones every step were half of the step (see `util::pool`).
 #[derive(Debug, Default)]
 pub struct FitBuffers {
     parts: Vec<PartBuffers>,
@@ -123,26 +122,9 @@ pub fn mse_gradient(
     let sh: Vec<&[f32]> = parts.iter().map(|p| &p.sh[..]).collect();
     FitGradient {
         mse: squared.iter().sum::<f64>() / (3 * n.max(1)) as f64,
-        density: sum_parts(&density, rows),
-        sh: sum_parts(&sh, rows * stride),
+        density: sum_in_order(&density, rows),
+        sh: sum_in_order(&sh, rows * stride),
     }
-}
-
-/// The element-wise sum of the parts' buffers (at least one), added in
-/// part order, so the result does not depend on how the chunks are spread
-/// over threads. Each chunk is written before it is read: a fresh page
-/// read first would be mapped to the zero page and then copied on write.
-fn sum_parts(parts: &[&[f32]], len: usize) -> Vec<f32> {
-    const CHUNK: usize = 1 << 16;
-    let mut out = vec![0.0f32; len];
-    out.par_chunks_mut(CHUNK).enumerate().for_each(|(c, chunk)| {
-        let range = c * CHUNK..c * CHUNK + chunk.len();
-        chunk.copy_from_slice(&parts[0][range.clone()]);
-        for part in &parts[1..] {
-            chunk.iter_mut().zip(&part[range.clone()]).for_each(|(a, b)| *a += b);
-        }
-    });
-    out
 }
 
 /// What the backward needs of one sample.

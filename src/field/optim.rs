@@ -7,11 +7,11 @@
 //! per-coordinate normalisation copes with the very different gradient
 //! scales of density and colour.
 
-use burn::tensor::{IndexingUpdateOp, Int, Tensor};
+use burn::tensor::{Int, Tensor};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::util::tensor::assign_rows;
+use crate::util::rows_op;
 
 /// Exponential decay from `a` to `b` over `t` in [0, 1].
 pub fn log_lerp(a: f32, b: f32, t: f32) -> f32 {
@@ -66,21 +66,23 @@ impl Rmsprop {
     }
 
     /// A lazy step on the given rows only ("sparse" updates as Plenoxels:
-    /// cost follows the rows, not the grid); `grad` holds those rows'
-    /// gradients in the same order. Returns what was added to the rows.
+    /// cost follows the rows, not the grid); `rows_t` holds `rows` as a
+    /// tensor and `grad` those rows' gradients in the same order. Returns
+    /// what was added to the rows.
     pub fn step_rows(
         &self,
         param: &mut Tensor<2>,
         avg: &mut Tensor<2>,
-        rows: &Tensor<1, Int>,
+        rows: &[i32],
+        rows_t: &Tensor<1, Int>,
         grad: Tensor<2>,
         lr: f32,
     ) -> Tensor<2> {
-        let v_old = avg.clone().select(0, rows.clone());
+        let v_old = rows_op::gather_rows(avg, rows, rows_t);
         let v_new = self.average(v_old.clone(), grad.clone());
         let update = self.normalised(grad, v_new.clone()) * (-lr);
-        add_rows(avg, rows, v_new - v_old);
-        add_rows(param, rows, update.clone());
+        add_rows(avg, rows, rows_t, v_new - v_old);
+        add_rows(param, rows, rows_t, update.clone());
         update
     }
 
@@ -103,12 +105,13 @@ impl Rmsprop {
     }
 }
 
-/// Adds `values` to the given rows of `slot` (a grid-sized tensor, updated
-/// in place: it is moved out of its slot first, so the backend sees it
-/// uniquely owned instead of copying the grid).
-pub fn add_rows(slot: &mut Tensor<2>, rows: &Tensor<1, Int>, values: Tensor<2>) {
+/// Adds `values` to the rows `rows` of `slot` (a grid-sized tensor;
+/// `rows_t` holds the same indices as a tensor), in place: the tensor is
+/// moved out of its slot first, so the backend sees it uniquely owned
+/// instead of copying the grid. In parallel on flex (`util::rows_op`).
+pub fn add_rows(slot: &mut Tensor<2>, rows: &[i32], rows_t: &Tensor<1, Int>, values: Tensor<2>) {
     let t = take(slot);
-    *slot = assign_rows(t, rows.clone(), values, IndexingUpdateOp::Add);
+    *slot = rows_op::add_to_rows(t, rows, rows_t, values);
 }
 
 /// Moves a tensor out of its slot (leaving a 1x1 placeholder).

@@ -32,6 +32,7 @@ use crate::scene::data::Dataset;
 use crate::util::backend::max_buffer_bytes;
 use crate::util::profile::StepProfile;
 use crate::util::rng::{Stream, step_rng};
+use crate::util::rows_op::read_rows;
 use crate::util::tensor::{floats, indices, scalar, select_rows, to_vec};
 use crate::util::transfer::human_bytes;
 
@@ -277,10 +278,11 @@ impl Trainer {
         profile.time("update", || {
             let (lr_d, lr_s) = self.learning_rates();
             let rmsprop = self.rmsprop();
+            let rows = self.subset.rows();
             let old_d = self.grid.density.clone().select(0, rows_t.clone());
-            let new_d = old_d + rmsprop.step_rows(&mut self.grid.density, &mut self.state.density, rows_t, gd, lr_d);
-            rmsprop.step_rows(&mut self.grid.sh, &mut self.state.sh, rows_t, gs, lr_s);
-            for (r, v) in self.subset.rows().iter().zip(to_vec(new_d)) {
+            let step_d = rmsprop.step_rows(&mut self.grid.density, &mut self.state.density, rows, rows_t, gd, lr_d);
+            rmsprop.step_rows(&mut self.grid.sh, &mut self.state.sh, rows, rows_t, gs, lr_s);
+            for (r, v) in rows.iter().zip(to_vec(old_d + step_d)) {
                 self.grid.density_cpu[*r as usize] = v;
             }
         });
@@ -305,7 +307,7 @@ impl Trainer {
         let (num_rows, stride) = (self.subset.rows().len(), 3 * self.grid.num_basis());
         let (mse, mut fit) = profile.time("gradient", || {
             let density: Vec<f32> = self.subset.rows().iter().map(|&r| self.grid.density_cpu[r as usize]).collect();
-            let sh = to_vec(self.grid.sh.clone().select(0, rows_t.clone()));
+            let sh = read_rows(&self.grid.sh, self.subset.rows(), rows_t);
             let corners: Vec<i32> = batch.corner_rows.iter().map(|&r| self.subset.local(r)).collect();
             let mut fit = host_fit::mse_gradient(
                 &density,
@@ -339,18 +341,20 @@ impl Trainer {
             let (lr_d, lr_s) = self.learning_rates();
             let rmsprop = self.rmsprop();
             let (density, grads) = &mut fit;
-            let mut avg_d = to_vec(self.state.density.clone().select(0, rows_t.clone()));
-            let mut avg_s = to_vec(self.state.sh.clone().select(0, rows_t.clone()));
+            let rows = self.subset.rows();
+            let mut avg_d = read_rows(&self.state.density, rows, rows_t);
+            let mut avg_s = read_rows(&self.state.sh, rows, rows_t);
             rmsprop.host_row_steps(&mut avg_d, &mut grads.density, lr_d);
             rmsprop.host_row_steps(&mut avg_s, &mut grads.sh, lr_s);
-            for ((&r, old), step) in self.subset.rows().iter().zip(density.iter()).zip(&grads.density) {
+            for ((&r, old), step) in rows.iter().zip(density.iter()).zip(&grads.density) {
                 self.grid.density_cpu[r as usize] = old + step;
             }
-            add_rows(&mut self.state.density, rows_t, floats(avg_d, [num_rows, 1], &plain));
-            add_rows(&mut self.state.sh, rows_t, floats(avg_s, [num_rows, stride], &plain));
+            add_rows(&mut self.state.density, rows, rows_t, floats(avg_d, [num_rows, 1], &plain));
+            add_rows(&mut self.state.sh, rows, rows_t, floats(avg_s, [num_rows, stride], &plain));
             let steps_d = std::mem::take(&mut grads.density);
-            add_rows(&mut self.grid.density, rows_t, floats(steps_d, [num_rows, 1], &plain));
-            add_rows(&mut self.grid.sh, rows_t, floats(std::mem::take(&mut grads.sh), [num_rows, stride], &plain));
+            add_rows(&mut self.grid.density, rows, rows_t, floats(steps_d, [num_rows, 1], &plain));
+            let steps_s = std::mem::take(&mut grads.sh);
+            add_rows(&mut self.grid.sh, rows, rows_t, floats(steps_s, [num_rows, stride], &plain));
         });
         mse
     }

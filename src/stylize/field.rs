@@ -181,7 +181,7 @@ impl StyleField {
         match (rows.touched, ids) {
             (Some(s), Some(ids)) => {
                 if !s.rows().is_empty() {
-                    opt.step_rows(&mut self.grid.sh, &mut self.rms, &ids, grad, lr);
+                    opt.step_rows(&mut self.grid.sh, &mut self.rms, s.rows(), &ids, grad, lr);
                 }
                 self.touched.set(s);
             }

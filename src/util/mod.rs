@@ -1,6 +1,6 @@
 //! Generic helpers every stage uses: the backend choice, tensor conversions,
 //! the one `Image` type with PNG/GIF/npy I/O, atomic file writes that name the file
-//! on failure, one run per output folder, progress events, per-step random generators, memory readings, host-device traffic counts, per-part step timings.
+//! on failure, one run per output folder, progress events, per-step random generators, memory readings, host-device traffic counts, per-part step timings, reused buffers.
 
 pub mod backend;
 pub mod config;
@@ -10,9 +10,11 @@ pub mod image;
 pub mod lock;
 pub mod memory;
 pub mod npy;
+pub mod pool;
 pub mod profile;
 pub mod progress;
 pub mod rng;
+pub mod rows_op;
 pub mod tensor;
 pub mod transfer;
 

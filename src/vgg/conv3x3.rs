@@ -32,6 +32,8 @@
 use gemm::Parallelism;
 use rayon::prelude::*;
 
+use crate::util::pool::BufferPool;
+
 /// The shape of a `[N, C, H, W]` tensor.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Dims {
@@ -88,7 +90,7 @@ impl WinogradWeights {
     /// input channels at once (contiguous rows of `u`), in parallel.
     fn build<'w>(k: usize, c: usize, kernel: impl Fn(usize, usize) -> &'w [f32] + Sync, flip: bool) -> Self {
         // Every value is written below.
-        let mut u = spare_buffer(XI * k * c);
+        let mut u = WEIGHT_BUFFERS.take(XI * k * c);
         let out = SharedOut(u.as_mut_ptr());
         (0..k).into_par_iter().for_each_init(
             || (vec![0.0f32; 9 * c], vec![0.0f32; 18 * c]),
@@ -137,15 +139,7 @@ impl WinogradWeights {
 
 impl Drop for WinogradWeights {
     fn drop(&mut self) {
-        let buffer = std::mem::take(&mut self.u);
-        let mut spare = SPARE.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-        if spare.len() < SPARE_BUFFERS {
-            spare.push(buffer);
-        } else if let Some(smallest) = spare.iter_mut().min_by_key(|b| b.capacity())
-            && smallest.capacity() < buffer.capacity()
-        {
-            *smallest = buffer;
-        }
+        WEIGHT_BUFFERS.give_back(std::mem::take(&mut self.u));
     }
 }
 
@@ -153,23 +147,7 @@ impl Drop for WinogradWeights {
 /// layer's 38 MB fresh from the system cost more in page faults than its
 /// transform (measured: 10-15 ms against 3). Two cover a forward and a
 /// backward step.
-static SPARE: std::sync::Mutex<Vec<Vec<f32>>> = std::sync::Mutex::new(Vec::new());
-const SPARE_BUFFERS: usize = 2;
-
-/// A buffer of `len` values whose contents are left as they were: the
-/// caller writes every value.
-fn spare_buffer(len: usize) -> Vec<f32> {
-    let mut spare = SPARE.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-    match spare.iter().position(|b| b.capacity() >= len) {
-        Some(i) => {
-            let mut buffer = spare.swap_remove(i);
-            buffer.resize(len, 0.0);
-            buffer.truncate(len);
-            buffer
-        }
-        None => vec![0.0; len],
-    }
-}
+static WEIGHT_BUFFERS: BufferPool = BufferPool::new(2);
 
 /// A pointer shared by the bands of one call, each writing its own
 /// elements.
