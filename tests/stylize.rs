@@ -712,9 +712,15 @@ fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
     assert!(moved.total.uploads > 0, "image_epochs: the step's sample lists are uploaded");
 
     // The fused host pass (the CPU backends' default) stylizes the same
-    // field up to float rounding: RMSprop's first step is lr x sign(g), so
-    // a row whose gradient is near zero may step the other way; all but a
-    // few values agree to 1e-3.
+    // field up to float rounding. RMSprop's first step is lr x sign(g), so
+    // a row whose gradient is near zero may step the other way, and the SH
+    // TV spreads such a step to its neighbours: how many values end up
+    // 1e-3 apart depends on the photoreal field (0.1 % on one fit, 4 % on
+    // the same fit after its own sums were reordered, issue 19), so the
+    // check is on the whole field: the mean difference and the 99th
+    // percentile. A wrong gradient in either pass moves every value by the
+    // order of a step (lr 0.1). The gradients themselves are compared to
+    // 1e-5 in `host_ray_kernel_matches_the_graph`.
     if refnpr::util::tensor::is_host_memory(&d) {
         let host = StylizeJob {
             render_test: false,
@@ -729,9 +735,11 @@ fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
         run_stylize(&host, &refnpr::Quiet).unwrap();
         let h = checkpoint::load_with(&t.path().join("host"), &d, false).unwrap();
         let (graph_sh, host_sh) = (to_vec(a.grid.sh.clone()), to_vec(h.grid.sh.clone()));
-        let apart = graph_sh.iter().zip(&host_sh).filter(|(x, y)| (*x - *y).abs() > 1e-3).count();
-        eprintln!("graph vs host ray pass: {apart} of {} SH values more than 1e-3 apart", graph_sh.len());
-        assert!(apart * 1000 <= graph_sh.len(), "{apart} of {} values differ", graph_sh.len());
+        let mut apart: Vec<f32> = graph_sh.iter().zip(&host_sh).map(|(x, y)| (x - y).abs()).collect();
+        apart.sort_by(f32::total_cmp);
+        let (mean, q99) = (apart.iter().sum::<f32>() / apart.len() as f32, apart[apart.len() * 99 / 100]);
+        eprintln!("graph vs host ray pass: SH values {mean:.1e} apart on average, 99 % within {q99:.1e}");
+        assert!(mean <= 1e-3 && q99 <= 1e-2, "graph vs host: mean {mean:.1e}, 99th percentile {q99:.1e}");
     }
 
     // The sample lists (pseudo-rays and views) kept where this backend does

@@ -220,6 +220,36 @@ impl RowSubset {
         }
     }
 
+    /// Clears, then holds the distinct rows of all `lists` in increasing
+    /// order. The rows are marked in a bitmap in parallel: a fern view's
+    /// samples alone have tens of millions of corner entries, which one
+    /// `insert` at a time took 1.2 s of a stylization step.
+    pub fn reset_to_union(&mut self, num_rows: usize, lists: &[&[i32]]) {
+        use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
+        const CHUNK: usize = 1 << 16;
+        self.clear(num_rows);
+        let words: Vec<AtomicU64> = (0..num_rows.div_ceil(64)).map(|_| AtomicU64::new(0)).collect();
+        lists.par_iter().flat_map(|list| list.par_chunks(CHUNK)).for_each(|chunk| {
+            for &r in chunk {
+                assert!(r >= 0 && (r as usize) < num_rows, "row {r} out of range for {num_rows} rows");
+                let (word, bit) = (&words[r as usize / 64], 1u64 << (r % 64));
+                // Most entries repeat a row (neighbouring samples share corners): read first.
+                if word.load(Relaxed) & bit == 0 {
+                    word.fetch_or(bit, Relaxed);
+                }
+            }
+        });
+        for (w, word) in words.into_iter().enumerate() {
+            let mut bits = word.into_inner();
+            while bits != 0 {
+                let row = w * 64 + bits.trailing_zeros() as usize;
+                self.local_of[row] = self.rows.len() as i32;
+                self.rows.push(row as i32);
+                bits &= bits - 1;
+            }
+        }
+    }
+
     /// Local index of `row`, adding it at the end if new.
     pub fn insert(&mut self, row: i32) -> i32 {
         let slot = &mut self.local_of[row as usize];
@@ -270,5 +300,10 @@ mod tests {
         assert_eq!((s.rows(), s.local(4), s.local(1)), (&[4][..], 0, -1));
         let fresh = RowSubset::of(10, &[2, 2, 5]);
         assert_eq!(fresh.rows(), &[2, 5]);
+        // The union of lists, in increasing row order, across 64-row words.
+        let mut u = RowSubset::of(200, &[7, 3]);
+        u.reset_to_union(200, &[&[130, 5, 64, 5], &[], &[63, 130, 199, 0]]);
+        assert_eq!(u.rows(), &[0, 5, 63, 64, 130, 199]);
+        assert_eq!((u.local(64), u.local(199), u.local(7), u.local(3)), (3, 5, -1, -1));
     }
 }

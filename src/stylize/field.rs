@@ -162,16 +162,16 @@ impl StyleField {
     }
 
     /// The rows a step will update: all (dense), or those of its samples'
-    /// corners and its TV rows (sparse).
+    /// corners and its TV rows (sparse), in increasing row order.
     pub fn step_rows(&self, sparse: bool, corner_rows: &[&[i32]], tv: &[Vec<i32>]) -> StepRows {
         let n = self.grid.num_rows();
         if !sparse {
             return StepRows::dense(n);
         }
-        let mut rows = StepRows::sparse_reusing(self.touched.take(), n);
-        corner_rows.iter().for_each(|r| rows.add(r));
-        tv.iter().for_each(|r| rows.add(r));
-        rows
+        let mut touched = self.touched.take();
+        let lists: Vec<&[i32]> = corner_rows.iter().copied().chain(tv.iter().map(Vec::as_slice)).collect();
+        touched.reset_to_union(n, &lists);
+        StepRows { num_rows: n, touched: Some(touched), on_device: Default::default() }
     }
 
     /// One RMSprop step on the SH rows of `rows` (density untouched); `grad`
