@@ -221,9 +221,9 @@ impl RowSubset {
     }
 
     /// Clears, then holds the distinct rows of all `lists` in increasing
-    /// order. The rows are marked in a bitmap in parallel: a fern view's
-    /// samples alone have tens of millions of corner entries, which one
-    /// `insert` at a time took 1.2 s of a stylization step.
+    /// order, marked in a bitmap in parallel (a fern view's samples have
+    /// tens of millions of corner entries; measured, this is not where a
+    /// fern step's `step_rows` time goes: see the README's fern profile).
     pub fn reset_to_union(&mut self, num_rows: usize, lists: &[&[i32]]) {
         use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
         const CHUNK: usize = 1 << 16;
