@@ -211,11 +211,12 @@ fn host_render_matches_the_graph() {
         &bt,
         [0.2, 0.5, 0.9],
     );
-    let (rgb, depth, opacity) = refnpr::field::host_render::render_batch(&dens, &shd, nb, &batch, [0.2, 0.5, 0.9]);
+    let host = refnpr::field::host_render::render_rays(&march::Marcher::new(&grid), &shd, &rays, &p, [0.2, 0.5, 0.9]);
+    assert_eq!(host.threshold_depth, batch.threshold_depth, "the fused pass marches the same samples");
     for (name, host, graph) in [
-        ("rgb", rgb, to_vec(graph.rgb)),
-        ("depth", depth, to_vec(graph.depth)),
-        ("opacity", opacity, to_vec(graph.opacity)),
+        ("rgb", host.rgb, to_vec(graph.rgb)),
+        ("depth", host.expected_depth, to_vec(graph.depth)),
+        ("opacity", host.opacity, to_vec(graph.opacity)),
     ] {
         assert_eq!(host.len(), graph.len(), "{name}");
         let err = host.iter().zip(&graph).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));

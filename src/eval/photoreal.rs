@@ -6,7 +6,7 @@ use anyhow::Result;
 use serde::{Deserialize, Serialize};
 
 use crate::eval::metrics;
-use crate::field::composite::render_view;
+use crate::field::composite::ViewRenderer;
 use crate::field::grid::RadianceGrid;
 use crate::photo::config::TrainConfig;
 use crate::scene::data::{Dataset, View};
@@ -29,9 +29,10 @@ pub fn evaluate(
 ) -> Result<EvalReport> {
     let mut psnrs = Vec::new();
     let mut ssims = Vec::new();
+    let renderer =
+        ViewRenderer::new(grid, dataset.ndc.as_ref(), &config.march, dataset.background, config.render_chunk);
     for (i, v) in views.iter().enumerate() {
-        let r =
-            render_view(grid, &v.camera, dataset.ndc.as_ref(), &config.march, dataset.background, config.render_chunk);
+        let r = renderer.view(&v.camera);
         psnrs.push(metrics::psnr(&r.image.rgb, &v.rgb));
         ssims.push(metrics::ssim(&r.image.rgb, &v.rgb, r.image.width, r.image.height));
         if let Some(dir) = out {

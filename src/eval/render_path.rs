@@ -45,8 +45,9 @@ pub fn render_frames(ck: &Checkpoint, cameras: &[Camera], out: &Path, progress: 
     progress.event(Event::Start { phase: Phase::Render, done: 0, total: cameras.len() });
     let mut gif_frames = Vec::new();
     let mut frames = Vec::with_capacity(cameras.len());
+    let renderer = ck.renderer();
     for (i, cam) in cameras.iter().enumerate() {
-        let r = ck.render_view(cam);
+        let r = renderer.view(cam);
         r.image.save_png(&out.join("rgb").join(format!("{i:04}.png")))?;
         let depth_rgb = image::depth_to_rgb(&r.threshold_depth);
         image::save_png(

@@ -32,6 +32,7 @@ use serde::Serialize;
 
 use crate::eval::metrics;
 use crate::field::checkpoint::{self, Checkpoint};
+use crate::field::composite::ViewRenderer;
 use crate::reference::case::{self, ReferenceCase};
 use crate::scene::camera::{Camera, from_ndc};
 use crate::scene::data::Dataset;
@@ -65,10 +66,16 @@ pub struct SurfaceRender {
 }
 
 /// Renders `camera` from `ck` with its surface points in world space
-/// (forward-facing scenes: marched in NDC, points mapped back).
+/// (forward-facing scenes: marched in NDC, points mapped back). Many views:
+/// [`surface_of`] with one `ck.renderer()`.
 pub fn render_surface(ck: &Checkpoint, camera: &Camera) -> SurfaceRender {
-    let ndc = ck.meta.ndc.as_ref();
-    let r = ck.render_view(camera);
+    surface_of(&ck.renderer(), camera)
+}
+
+/// [`render_surface`] by a renderer built once for many views.
+pub fn surface_of(renderer: &ViewRenderer, camera: &Camera) -> SurfaceRender {
+    let ndc = renderer.ndc();
+    let r = renderer.view(camera);
     let rays = camera.rays(ndc);
     let points = r
         .threshold_depth
@@ -271,7 +278,9 @@ pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<St
     }
     let path = dataset.render_path(case.path_frames);
     progress.info(format!("rendering {} path frames of {}", path.len(), job.run.display()));
-    let frames: Vec<SurfaceRender> = path.iter().map(|c| render_surface(&ck, c)).collect();
+    let renderer = ck.renderer();
+    let frames: Vec<SurfaceRender> = path.iter().map(|c| surface_of(&renderer, c)).collect();
+    drop(renderer);
     let (ref_lpips, ref_lpips_frames) = ref_lpips(&ck, &dataset, &case, &frames)?;
     let truth = match &job.gt {
         Some(gt) => Some(ground_truth_psnrs(&ck, &dataset, &case, gt)?),
@@ -373,7 +382,8 @@ fn ground_truth_psnrs(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, 
         gt.test.len(),
         dataset.test.len()
     );
-    let refs: Vec<SurfaceRender> = case.cameras(dataset)?.iter().map(|c| render_surface(ck, c)).collect();
+    let renderer = ck.renderer();
+    let refs: Vec<SurfaceRender> = case.cameras(dataset)?.iter().map(|c| surface_of(&renderer, c)).collect();
     let (mut all, mut occ, mut surface, mut hidden) = ((0.0f64, 0usize), (0.0f64, 0usize), 0usize, 0usize);
     let (mut speckle, mut gt_speckle) = ((0, 0), (0, 0));
     for (v, t) in gt.test.iter().enumerate() {
@@ -381,7 +391,7 @@ fn ground_truth_psnrs(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, 
             t.camera.intrinsics.width == dataset.test[v].camera.intrinsics.width,
             "ground truth test view {v} has another size"
         );
-        let r = render_surface(ck, &t.camera);
+        let r = surface_of(&renderer, &t.camera);
         all = (all.0 + metrics::squared_error(&r.image.rgb, &t.rgb), all.1 + r.image.rgb.len());
         let seen = visible_from(&r.points, &refs, tol);
         let unseen: Vec<bool> = r.points.iter().zip(&seen).map(|(p, s)| p.is_some() && !s).collect();
@@ -492,8 +502,9 @@ fn robustness(
         let again = checkpoint::load_with(&out, &ck.grid.device(), false)?;
         // One PSNR over all the path frames' pixels, one render at a time.
         let (mut sum, mut n) = (0.0f64, 0usize);
+        let renderer = again.renderer();
         for f in frames {
-            let r = again.render_view(&f.camera);
+            let r = renderer.view(&f.camera);
             sum += metrics::squared_error(&r.image.rgb, &f.image.rgb);
             n += r.image.rgb.len();
         }

@@ -2,7 +2,7 @@
 //! dataset kind, config) plus the optimiser state for resuming, in one file
 //! written atomically (temporary file, then rename).
 
-use crate::field::composite::{ViewRender, render_view};
+use crate::field::composite::{ViewRender, ViewRenderer};
 use crate::field::grid::{GridGeometry, RadianceGrid};
 use crate::photo::config::TrainConfig;
 use crate::scene::camera::{Camera, NdcParams};
@@ -69,11 +69,16 @@ impl Checkpoint {
         })
     }
 
-    /// Renders `camera`'s view of the checkpoint's field with its own march
-    /// settings, NDC warp and background.
-    pub fn render_view(&self, camera: &Camera) -> ViewRender {
+    /// A renderer of the checkpoint's field with its own march settings,
+    /// NDC warp and background (many views: build it once).
+    pub fn renderer(&self) -> ViewRenderer<'_> {
         let cfg = &self.meta.config;
-        render_view(&self.grid, camera, self.meta.ndc.as_ref(), &cfg.march, self.meta.background, cfg.render_chunk)
+        ViewRenderer::new(&self.grid, self.meta.ndc.as_ref(), &cfg.march, self.meta.background, cfg.render_chunk)
+    }
+
+    /// Renders `camera`'s view (one view; many: [`renderer`](Self::renderer)).
+    pub fn render_view(&self, camera: &Camera) -> ViewRender {
+        self.renderer().view(camera)
     }
 }
 

@@ -134,6 +134,7 @@ pub struct ViewRender {
 }
 
 /// Rays rendered without autodiff, in plain buffers (colours not clamped).
+#[derive(Debug, Clone, Default)]
 pub struct RaysRender {
     /// Interleaved RGB.
     pub rgb: Vec<f32>,
@@ -142,7 +143,75 @@ pub struct RaysRender {
     pub opacity: Vec<f32>,
 }
 
-/// Renders rays in chunks (bounded memory at any resolution) without autodiff.
+/// Renders views of one grid state without autodiff. What every view of
+/// that state shares is built once: the marcher's block occupancy
+/// (O(active rows): millions on real scenes) and, on the CPU backends, the
+/// SH rows as host numbers (fern at SH degree 2: 27 floats a row). An
+/// evaluation renders 120 path frames from one renderer.
+pub struct ViewRenderer<'a> {
+    grid: &'a RadianceGrid,
+    /// The warp of forward-facing scenes (None: rays in world space).
+    ndc: Option<NdcParams>,
+    marcher: Marcher<'a>,
+    /// The SH rows as host numbers: the fused pass of `host_render` (CPU
+    /// backends); None = the graph in chunks of `chunk` rays (GPU).
+    sh_host: Option<Vec<f32>>,
+    params: MarchParams,
+    background: [f32; 3],
+    chunk: usize,
+}
+
+impl<'a> ViewRenderer<'a> {
+    pub fn new(
+        grid: &'a RadianceGrid,
+        ndc: Option<&NdcParams>,
+        params: &MarchParams,
+        background: [f32; 3],
+        chunk: usize,
+    ) -> Self {
+        let sh_host = is_host_memory(&grid.device()).then(|| to_vec(grid.sh.clone().inner()));
+        let (ndc, params, chunk) = (ndc.copied(), *params, chunk.max(1));
+        Self { grid, ndc, marcher: Marcher::new(grid), sh_host, params, background, chunk }
+    }
+
+    /// The warp of forward-facing scenes the views are marched in.
+    pub fn ndc(&self) -> Option<&NdcParams> {
+        self.ndc.as_ref()
+    }
+
+    /// Renders rays (on a GPU in chunks: bounded memory at any resolution).
+    pub fn rays(&self, rays: &[Ray]) -> RaysRender {
+        if let Some(sh) = &self.sh_host {
+            return host_render::render_rays(&self.marcher, sh, rays, &self.params, self.background);
+        }
+        let device = self.grid.device();
+        let (dens, sh) = (self.grid.density.clone().inner(), self.grid.sh.clone().inner());
+        let mut out = RaysRender::default();
+        for part in rays.chunks(self.chunk) {
+            let batch = self.marcher.samples(part, &self.params);
+            let bt = BatchTensors::new(&batch, None, &device);
+            let rendered = composite(dens.clone(), sh.clone(), &bt, self.background);
+            out.rgb.extend(to_vec(rendered.rgb));
+            out.expected_depth.extend(to_vec(rendered.depth));
+            out.opacity.extend(to_vec(rendered.opacity));
+            out.threshold_depth.extend(batch.threshold_depth);
+        }
+        out
+    }
+
+    /// Renders a full camera view.
+    pub fn view(&self, camera: &Camera) -> ViewRender {
+        let r = self.rays(&camera.rays(self.ndc.as_ref()));
+        ViewRender {
+            image: Image::of_camera(camera, r.rgb.into_iter().map(|v| v.clamp(0.0, 1.0)).collect()),
+            expected_depth: r.expected_depth,
+            threshold_depth: r.threshold_depth,
+            opacity: r.opacity,
+        }
+    }
+}
+
+/// Renders rays without autodiff (one-off: many views of one grid share a [`ViewRenderer`]).
 pub fn render_rays(
     grid: &RadianceGrid,
     rays: &[Ray],
@@ -150,43 +219,11 @@ pub fn render_rays(
     background: [f32; 3],
     chunk: usize,
 ) -> RaysRender {
-    let device = grid.device();
-    let (dens, sh) = (grid.density.clone().inner(), grid.sh.clone().inner());
-    let mut out = RaysRender {
-        rgb: Vec::with_capacity(rays.len() * 3),
-        expected_depth: Vec::with_capacity(rays.len()),
-        threshold_depth: Vec::with_capacity(rays.len()),
-        opacity: Vec::with_capacity(rays.len()),
-    };
-    let marcher = Marcher::new(grid);
-    // On the CPU backends the loop of `host_render` (the same arithmetic,
-    // without materialising the graph's per-sample tensors).
-    let sh_host = is_host_memory(&device).then(|| to_vec(sh.clone()));
-    let num_basis = sh.dims()[1] / 3;
-    for part in rays.chunks(chunk.max(1)) {
-        let batch = marcher.samples(part, params);
-        match &sh_host {
-            Some(sh_host) => {
-                let (rgb, depth, opacity) =
-                    host_render::render_batch(&grid.density_cpu, sh_host, num_basis, &batch, background);
-                out.rgb.extend(rgb);
-                out.expected_depth.extend(depth);
-                out.opacity.extend(opacity);
-            }
-            None => {
-                let bt = BatchTensors::new(&batch, None, &device);
-                let rendered = composite(dens.clone(), sh.clone(), &bt, background);
-                out.rgb.extend(to_vec(rendered.rgb));
-                out.expected_depth.extend(to_vec(rendered.depth));
-                out.opacity.extend(to_vec(rendered.opacity));
-            }
-        }
-        out.threshold_depth.extend(batch.threshold_depth);
-    }
-    out
+    ViewRenderer::new(grid, None, params, background, chunk).rays(rays)
 }
 
-/// Renders a full camera view (`ndc`: the warp of forward-facing scenes).
+/// Renders a full camera view (`ndc`: the warp of forward-facing scenes;
+/// many views of one grid share a [`ViewRenderer`]).
 pub fn render_view(
     grid: &RadianceGrid,
     camera: &Camera,
@@ -195,11 +232,5 @@ pub fn render_view(
     background: [f32; 3],
     chunk: usize,
 ) -> ViewRender {
-    let r = render_rays(grid, &camera.rays(ndc), params, background, chunk);
-    ViewRender {
-        image: Image::of_camera(camera, r.rgb.into_iter().map(|v| v.clamp(0.0, 1.0)).collect()),
-        expected_depth: r.expected_depth,
-        threshold_depth: r.threshold_depth,
-        opacity: r.opacity,
-    }
+    ViewRenderer::new(grid, ndc, params, background, chunk).view(camera)
 }

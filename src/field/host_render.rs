@@ -4,79 +4,24 @@
 //!
 //! The Burn graph gathers 8 corner rows of density and SH per sample,
 //! materialises every intermediate `[samples, ...]` tensor and pads rays to
-//! the longest one; this loop walks each ray once, reading the rows it
-//! needs (issue 19: `refnpr eval` rendered hundreds of views through the
-//! graph). The same arithmetic in the same order per ray; the graph stays
-//! the path on a GPU and the oracle of `host_render_matches_the_graph`.
+//! the longest one; `render_rays` marches and renders each ray in one
+//! pass, reading the rows it needs as the march finds its samples (issue
+//! 19: `refnpr eval` rendered hundreds of views through the graph, then
+//! through a packed batch of every sample). The same arithmetic in the same
+//! order per ray; the graph stays the path on a GPU and the oracle of
+//! `host_render_matches_the_graph`.
 
 use rayon::prelude::*;
 
 use crate::field::relu;
 
-use crate::field::march::SampleBatch;
+use crate::field::composite::RaysRender;
+use crate::field::march::{MarchParams, Marcher, SampleBatch};
+use crate::scene::camera::Ray;
+use crate::scene::sh;
 
 /// Rays rendered at once per rayon task.
 const RAYS_PER_TASK: usize = 512;
-
-/// Colours (interleaved, not clamped), expected depth and opacity of the
-/// rays of `batch`: `density` one value per grid row (the density mirror),
-/// `sh` the SH rows `[rows, 3 * num_basis]` (channel-major within a row).
-pub fn render_batch(
-    density: &[f32],
-    sh: &[f32],
-    num_basis: usize,
-    batch: &SampleBatch,
-    background: [f32; 3],
-) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
-    let n = batch.num_rays;
-    let mut rgb = vec![0.0f32; n * 3];
-    let mut depth = vec![0.0f32; n];
-    let mut opacity = vec![0.0f32; n];
-    rgb.par_chunks_mut(3 * RAYS_PER_TASK)
-        .zip(depth.par_chunks_mut(RAYS_PER_TASK))
-        .zip(opacity.par_chunks_mut(RAYS_PER_TASK))
-        .enumerate()
-        .for_each(|(task, ((rgb, depth), opacity))| {
-            for i in 0..depth.len() {
-                let r = task * RAYS_PER_TASK + i;
-                let (colour, d, o) = render_ray(density, sh, num_basis, batch, r, background);
-                rgb[i * 3..i * 3 + 3].copy_from_slice(&colour);
-                depth[i] = d;
-                opacity[i] = o;
-            }
-        });
-    (rgb, depth, opacity)
-}
-
-/// One ray: `max(sigma, 0)` and the SH coefficients interpolated at each
-/// sample, colour `max(sum_b coeff_b basis_b + 0.5, 0)`, alpha-composited
-/// front to back over the background.
-fn render_ray(
-    density: &[f32],
-    sh: &[f32],
-    num_basis: usize,
-    batch: &SampleBatch,
-    r: usize,
-    background: [f32; 3],
-) -> ([f32; 3], f32, f32) {
-    let (lo, hi) = (batch.ray_offsets[r] as usize, batch.ray_offsets[r + 1] as usize);
-    let (mut rgb, mut depth, mut optical) = ([0.0f32; 3], 0.0f32, 0.0f32);
-    for s in lo..hi {
-        let (sigma, pre) = sample_values(density, sh, num_basis, batch, &batch.corner_rows[s * 8..s * 8 + 8], s);
-        let tau = relu(sigma) * batch.delta[s];
-        let weight = (-optical).exp() * (1.0 - (-tau).exp());
-        optical += tau;
-        for (value, pre) in rgb.iter_mut().zip(pre) {
-            *value += weight * relu(pre);
-        }
-        depth += weight * batch.t[s];
-    }
-    let left = (-optical).exp();
-    for (value, b) in rgb.iter_mut().zip(background) {
-        *value += left * b;
-    }
-    (rgb, depth, 1.0 - left)
-}
 
 /// Sample `s`'s interpolated density (before the ReLU) and its colour
 /// before the ReLU, `sum_b coeff_b basis_b + 0.5` per channel, the
@@ -90,23 +35,92 @@ pub(crate) fn sample_values(
     rows: &[i32],
     s: usize,
 ) -> (f32, [f32; 3]) {
-    assert!(num_basis <= 16, "SH degree 3 at most");
-    let stride = 3 * num_basis;
     let corners = s * 8..s * 8 + 8;
     let mut sigma = 0.0f32;
     for (w, &row) in batch.corner_weights[corners.clone()].iter().zip(rows) {
         sigma += w * density[row as usize];
     }
+    let basis = &batch.basis[s * num_basis..(s + 1) * num_basis];
+    (sigma, sample_colour(sh, num_basis, rows, &batch.colour_weights[corners], basis))
+}
+
+/// A sample's colour before the ReLU: the SH coefficients interpolated
+/// from its 8 corner `rows` with `colour_weights`, `sum_b coeff_b basis_b
+/// + 0.5` per channel.
+pub(crate) fn sample_colour(
+    sh: &[f32],
+    num_basis: usize,
+    rows: &[i32],
+    colour_weights: &[f32],
+    basis: &[f32],
+) -> [f32; 3] {
+    assert!(num_basis <= 16, "SH degree 3 at most");
+    let stride = 3 * num_basis;
     let mut coefficients = [0.0f32; 3 * 16];
     let coefficients = &mut coefficients[..stride];
-    for (w, &row) in batch.colour_weights[corners].iter().zip(rows) {
+    for (w, &row) in colour_weights.iter().zip(rows) {
         for (c, v) in coefficients.iter_mut().zip(&sh[row as usize * stride..(row as usize + 1) * stride]) {
             *c += w * v;
         }
     }
-    let basis = &batch.basis[s * num_basis..(s + 1) * num_basis];
-    let pre = std::array::from_fn(|ch| {
+    std::array::from_fn(|ch| {
         coefficients[ch * num_basis..(ch + 1) * num_basis].iter().zip(basis).map(|(c, b)| c * b).sum::<f32>() + 0.5
-    });
-    (sigma, pre)
+    })
+}
+
+/// Marches and renders `rays` in one pass per ray (`composite::composite`'s
+/// arithmetic, per ray, on the samples as `Marcher::walk` finds them:
+/// no packed batch, no per-sample tensors): the views rendered on the CPU backends. `density` is the
+/// grid's density mirror, `sh` its SH rows as host numbers.
+pub fn render_rays(
+    marcher: &Marcher,
+    sh: &[f32],
+    rays: &[Ray],
+    params: &MarchParams,
+    background: [f32; 3],
+) -> RaysRender {
+    let grid = marcher.grid();
+    let (density, degree, num_basis) = (&grid.density_cpu[..], grid.sh_degree, grid.num_basis());
+    let n = rays.len();
+    let mut out = RaysRender {
+        rgb: vec![0.0; n * 3],
+        expected_depth: vec![0.0; n],
+        threshold_depth: vec![None; n],
+        opacity: vec![0.0; n],
+    };
+    out.rgb
+        .par_chunks_mut(3 * RAYS_PER_TASK)
+        .zip(out.expected_depth.par_chunks_mut(RAYS_PER_TASK))
+        .zip(out.threshold_depth.par_chunks_mut(RAYS_PER_TASK))
+        .zip(out.opacity.par_chunks_mut(RAYS_PER_TASK))
+        .zip(rays.par_chunks(RAYS_PER_TASK))
+        .for_each(|((((rgb, depth), threshold), opacity), rays)| {
+            let mut basis = vec![0.0f32; num_basis];
+            for (i, ray) in rays.iter().enumerate() {
+                sh::eval_basis(degree, ray.view_dir, &mut basis);
+                let (mut colour, mut d, mut optical) = ([0.0f32; 3], 0.0f32, 0.0f32);
+                threshold[i] = marcher.walk(ray, params, |s| {
+                    let mut sigma = 0.0f32;
+                    for (w, &row) in s.weights.iter().zip(&s.rows) {
+                        sigma += w * density[row as usize];
+                    }
+                    let pre = sample_colour(sh, num_basis, &s.rows, &s.colour_weights, &basis);
+                    let tau = relu(sigma) * s.delta;
+                    let weight = (-optical).exp() * (1.0 - (-tau).exp());
+                    optical += tau;
+                    for (value, pre) in colour.iter_mut().zip(pre) {
+                        *value += weight * relu(pre);
+                    }
+                    d += weight * s.t;
+                });
+                let left = (-optical).exp();
+                for (value, b) in colour.iter_mut().zip(background) {
+                    *value += left * b;
+                }
+                rgb[i * 3..i * 3 + 3].copy_from_slice(&colour);
+                depth[i] = d;
+                opacity[i] = 1.0 - left;
+            }
+        });
+    out
 }

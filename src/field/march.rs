@@ -95,6 +95,23 @@ struct RaySamples {
     depth: Option<f32>,
 }
 
+/// One sample of a march: a position whose voxel has an active corner and
+/// whose interpolated density is above `sigma_threshold`.
+#[derive(Debug, Clone, Copy)]
+pub struct MarchSample {
+    /// 8 grid rows (an inactive corner points at an active row with weight 0).
+    pub rows: [i32; 8],
+    /// Trilinear density weights (inactive corners: 0).
+    pub weights: [f32; 8],
+    /// Colour interpolation weights (see `ColourCorners`; inactive corners: 0).
+    pub colour_weights: [f32; 8],
+    /// Distance along the ray and the interval length.
+    pub t: f32,
+    pub delta: f32,
+    /// The interpolated density (empty corners count as zero).
+    pub sigma: f32,
+}
+
 /// The 8 lattice corners around a point: their rows (-1 = empty), trilinear
 /// weights, the first active row, the interpolated density (empty = 0) and
 /// the weight of the active corners.
@@ -307,8 +324,6 @@ impl<'a> Marcher<'a> {
     }
 
     fn march_ray(&self, ray: &Ray, p: &MarchParams) -> RaySamples {
-        let grid = self.grid;
-        let geo = &grid.geometry;
         let mut out = RaySamples {
             rows: Vec::new(),
             weights: Vec::new(),
@@ -317,11 +332,30 @@ impl<'a> Marcher<'a> {
             delta: Vec::new(),
             depth: None,
         };
-        let Some((t0, t1)) = geo.intersect(ray.origin, ray.dir) else { return out };
+        out.depth = self.walk(ray, p, |s| {
+            out.rows.extend_from_slice(&s.rows);
+            out.weights.extend_from_slice(&s.weights);
+            out.colour_weights.extend_from_slice(&s.colour_weights);
+            out.t.push(s.t);
+            out.delta.push(s.delta);
+        });
+        out
+    }
+
+    /// Marches one ray and hands each of its samples, front to back, to
+    /// `visit`; returns the ray's equation-4 depth (None = miss). The one
+    /// march loop behind `samples` (packed batches) and the fused passes
+    /// that consume samples as they are found (`FrozenSamples::march`,
+    /// `host_render::render_rays`), so all see the very same samples.
+    pub fn walk(&self, ray: &Ray, p: &MarchParams, mut visit: impl FnMut(&MarchSample)) -> Option<f32> {
+        let grid = self.grid;
+        let geo = &grid.geometry;
+        let (t0, t1) = geo.intersect(ray.origin, ray.dir)?;
         let step = ray_step(grid, ray, p);
         let a = geo.world_to_grid(ray.origin);
         let d = ray.dir / geo.voxel_size();
         let log_stop = p.stop_threshold.ln();
+        let mut depth = None;
         let mut optical = 0.0f32; // sum of sigma * delta so far
         // Sample k sits at t0 + (k + 0.5) step (computed, not accumulated,
         // so skipping lands on the very same positions).
@@ -342,30 +376,27 @@ impl<'a> Marcher<'a> {
                     ColourCorners::Renormalised => wsum,
                     ColourCorners::Zero => 1.0,
                 };
+                let mut sample = MarchSample { rows, weights: w, colour_weights: [0.0; 8], t, delta: step, sigma };
                 for c in 0..8 {
                     if rows[c] >= 0 {
-                        out.rows.push(rows[c]);
-                        out.weights.push(w[c]);
-                        out.colour_weights.push(w[c] / colour_weight_sum);
+                        sample.colour_weights[c] = w[c] / colour_weight_sum;
                     } else {
-                        out.rows.push(first_active);
-                        out.weights.push(0.0);
-                        out.colour_weights.push(0.0);
+                        sample.rows[c] = first_active;
+                        sample.weights[c] = 0.0;
                     }
                 }
-                out.t.push(t);
-                out.delta.push(step);
+                visit(&sample);
                 let before = optical;
                 optical += sigma * step;
-                if out.depth.is_none() && optical >= p.depth_threshold {
-                    out.depth = Some(threshold_crossing(t, step, before, sigma, p.depth_threshold));
+                if depth.is_none() && optical >= p.depth_threshold {
+                    depth = Some(threshold_crossing(t, step, before, sigma, p.depth_threshold));
                 }
                 if -optical < log_stop {
                     break;
                 }
             }
         }
-        out
+        depth
     }
 }
 

@@ -323,8 +323,9 @@ pub fn run_register(
     file.save(&out.join(REGISTRATION_FILE))?;
     files::write_json(&out.join("register.json"), &report)?;
     let dir = out.join("overlays");
+    let renderer = ck.renderer();
     for (view, reg) in dataset.train.iter().zip(&file.views).take(overlays) {
-        let content = ck.render_view(&view.camera).image;
+        let content = renderer.view(&view.camera).image;
         overlay(&content, &reg.registration).save_png(&dir.join(format!("{}.png", sanitize(&view.name))))?;
     }
     Ok(report)

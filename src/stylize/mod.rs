@@ -157,6 +157,9 @@ pub struct StylizeReport {
     pub step_profiles: BTreeMap<String, Vec<crate::util::profile::PartTime>>,
     pub total_seconds: f64,
     pub peak_rss_mb: Option<f64>,
+    /// Resident and peak memory when each phase ended (registration,
+    /// refit, content, image_epochs: the image epochs and the smooth update).
+    pub memory: BTreeMap<String, crate::util::memory::MemoryNow>,
     pub final_losses: Option<CurvePoint>,
     pub curve: Vec<CurvePoint>,
     pub warnings: Vec<String>,

@@ -26,7 +26,7 @@ use crate::stylize::{Method, StepKind, StylizeJob, StylizeReport};
 use crate::util::files;
 use crate::util::image::Image;
 use crate::util::lock::OutputLock;
-use crate::util::memory::{available_memory_bytes, peak_rss_mb};
+use crate::util::memory::{MemoryNow, available_memory_bytes, peak_rss_mb};
 use crate::util::profile;
 use crate::util::progress::{Event, Phase, Progress, WarningLog};
 use crate::util::transfer::{self, PhaseTransfers};
@@ -53,11 +53,13 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     };
     let mut seconds = BTreeMap::new();
     let mut moved = BTreeMap::new();
+    let mut memory = BTreeMap::new();
     let mut warnings = WarningLog::new(progress);
 
     let m = transfer::measure(|| registration(job, &ck, &dataset, &case, &mut warnings));
     let registration = m.value?;
     seconds.insert("registration".to_string(), m.seconds);
+    memory.insert("registration".to_string(), MemoryNow::read());
     moved.insert("registration".to_string(), PhaseTransfers::new(m.moved, 0));
     let registered_fraction = registration.fraction_overall();
     if job.method == Method::RefNpr && registration.views.iter().all(|v| v.registration.pixels.is_empty()) {
@@ -81,6 +83,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
             let refit_steps = st.curve.iter().filter(|p| p.phase == StepKind::Refit).count();
             moved.insert("refit".to_string(), PhaseTransfers::new(m.moved, refit_steps));
             st.finish_refit()?;
+            memory.insert("refit".to_string(), MemoryNow::read());
         }
         Some(state) => {
             progress.info(format!(
@@ -96,6 +99,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let m = transfer::measure(|| st.guidance(&styles, keeps_content(job), colour, progress));
     let (guidance, colour_matched) = m.value?;
     seconds.insert("content".to_string(), m.seconds);
+    memory.insert("content".to_string(), MemoryNow::read());
     moved.insert("content".to_string(), PhaseTransfers::new(m.moved, dataset.train.len()));
     if colour {
         // What L_color pulls each view towards, for inspection (small: one entry per 16x16 pixels).
@@ -112,6 +116,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let epochs = st.image_epochs(&styles, guidance, start, progress)?;
     seconds.insert("image_epochs".to_string(), epochs.image_seconds);
     seconds.insert("smooth_update".to_string(), epochs.smooth_seconds);
+    memory.insert("image_epochs".to_string(), MemoryNow::read());
     moved.insert("image_epochs".to_string(), epochs.image_steps);
     moved.insert("smooth_update".to_string(), epochs.smooth_steps);
     moved.insert("smooth_update_guides".to_string(), epochs.smooth_guides);
@@ -153,6 +158,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         transfers: moved,
         step_profiles: std::mem::take(&mut st.step_profiles),
         peak_rss_mb: peak_rss_mb(),
+        memory,
         final_losses: st.curve.iter().rev().find(|p| p.phase != StepKind::Refit).cloned(),
         curve: std::mem::take(&mut st.curve),
         warnings: warnings.into_vec(),

@@ -12,6 +12,20 @@ pub fn proc_status_mb(key: &str) -> Option<f64> {
     Some(l.split_whitespace().nth(1)?.parse::<f64>().ok()? / 1024.0)
 }
 
+/// Resident and peak resident memory (MB) at one moment: where a long
+/// job's memory goes, phase by phase.
+#[derive(Debug, Clone, Copy, serde::Serialize)]
+pub struct MemoryNow {
+    pub resident_mb: Option<f64>,
+    pub peak_mb: Option<f64>,
+}
+
+impl MemoryNow {
+    pub fn read() -> Self {
+        Self { resident_mb: proc_status_mb("VmRSS:"), peak_mb: peak_rss_mb() }
+    }
+}
+
 /// Memory the OS reports as available.
 pub fn available_memory_bytes() -> Option<u64> {
     let text = std::fs::read_to_string("/proc/meminfo").ok()?;
