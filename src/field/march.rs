@@ -86,15 +86,6 @@ impl SampleBatch {
     }
 }
 
-struct RaySamples {
-    rows: Vec<i32>,
-    weights: Vec<f32>,
-    colour_weights: Vec<f32>,
-    t: Vec<f32>,
-    delta: Vec<f32>,
-    depth: Option<f32>,
-}
-
 /// One sample of a march: a position whose voxel has an active corner and
 /// whose interpolated density is above `sigma_threshold`.
 #[derive(Debug, Clone, Copy)]
@@ -171,6 +162,9 @@ pub struct BlockOccupancy {
 }
 
 const BLOCK: usize = 8;
+
+/// Rays marched per rayon task by `Marcher::samples`.
+const RAYS_PER_TASK: usize = 256;
 
 impl BlockOccupancy {
     pub fn of(grid: &RadianceGrid) -> Self {
@@ -256,7 +250,7 @@ impl<'a> Marcher<'a> {
         rays.par_iter().map(|r| self.depth(r, params)).collect()
     }
 
-    /// The same march and sub-sample crossing as `march_ray`, stopping at the crossing.
+    /// The same march and sub-sample crossing as `walk`, stopping at the crossing.
     fn depth(&self, ray: &Ray, p: &MarchParams) -> Option<f32> {
         let grid = self.grid;
         let geo = &grid.geometry;
@@ -288,58 +282,56 @@ impl<'a> Marcher<'a> {
         }
     }
 
-    /// Marches every ray (in parallel) and packs the samples.
+    /// Marches every ray (in parallel) and packs the samples. Each rayon
+    /// task packs its rays into a batch of its own (no vectors per ray);
+    /// the pieces are appended in ray order, so the batch does not depend
+    /// on the thread count.
     pub fn samples(&self, rays: &[Ray], params: &MarchParams) -> SampleBatch {
-        let grid = self.grid;
-        let nb = grid.num_basis();
-        let per_ray: Vec<RaySamples> = rays.par_iter().map(|r| self.march_ray(r, params)).collect();
-        let total: usize = per_ray.iter().map(|s| s.t.len()).sum();
-        let mut b = SampleBatch {
-            num_rays: rays.len(),
-            ray_offsets: Vec::with_capacity(rays.len() + 1),
-            corner_rows: Vec::with_capacity(total * 8),
-            corner_weights: Vec::with_capacity(total * 8),
-            colour_weights: Vec::with_capacity(total * 8),
-            t: Vec::with_capacity(total),
-            delta: Vec::with_capacity(total),
-            basis: Vec::with_capacity(total * nb),
-            threshold_depth: Vec::with_capacity(rays.len()),
-        };
-        let mut basis = vec![0.0f32; nb];
-        b.ray_offsets.push(0);
-        for (ray, s) in rays.iter().zip(per_ray) {
-            sh::eval_basis(grid.sh_degree, ray.view_dir, &mut basis);
-            for _ in 0..s.t.len() {
-                b.basis.extend_from_slice(&basis);
-            }
-            b.corner_rows.extend(s.rows);
-            b.corner_weights.extend(s.weights);
-            b.colour_weights.extend(s.colour_weights);
-            b.t.extend(s.t);
-            b.delta.extend(s.delta);
-            b.threshold_depth.push(s.depth);
-            b.ray_offsets.push(b.t.len() as u32);
+        let pieces: Vec<SampleBatch> = rays.par_chunks(RAYS_PER_TASK).map(|part| self.pack(part, params)).collect();
+        let mut b = SampleBatch { num_rays: 0, ray_offsets: vec![0], ..Default::default() };
+        let total: usize = pieces.iter().map(SampleBatch::num_samples).sum();
+        b.ray_offsets.reserve(rays.len());
+        b.threshold_depth.reserve(rays.len());
+        b.corner_rows.reserve(total * 8);
+        b.corner_weights.reserve(total * 8);
+        b.colour_weights.reserve(total * 8);
+        b.t.reserve(total);
+        b.delta.reserve(total);
+        b.basis.reserve(total * self.grid.num_basis());
+        for piece in pieces {
+            let base = b.t.len() as u32;
+            b.ray_offsets.extend(piece.ray_offsets[1..].iter().map(|o| o + base));
+            b.corner_rows.extend_from_slice(&piece.corner_rows);
+            b.corner_weights.extend_from_slice(&piece.corner_weights);
+            b.colour_weights.extend_from_slice(&piece.colour_weights);
+            b.t.extend_from_slice(&piece.t);
+            b.delta.extend_from_slice(&piece.delta);
+            b.basis.extend_from_slice(&piece.basis);
+            b.threshold_depth.extend_from_slice(&piece.threshold_depth);
+            b.num_rays += piece.num_rays;
         }
         b
     }
 
-    fn march_ray(&self, ray: &Ray, p: &MarchParams) -> RaySamples {
-        let mut out = RaySamples {
-            rows: Vec::new(),
-            weights: Vec::new(),
-            colour_weights: Vec::new(),
-            t: Vec::new(),
-            delta: Vec::new(),
-            depth: None,
-        };
-        out.depth = self.walk(ray, p, |s| {
-            out.rows.extend_from_slice(&s.rows);
-            out.weights.extend_from_slice(&s.weights);
-            out.colour_weights.extend_from_slice(&s.colour_weights);
-            out.t.push(s.t);
-            out.delta.push(s.delta);
-        });
-        out
+    /// Marches `rays` one after another into one batch.
+    fn pack(&self, rays: &[Ray], params: &MarchParams) -> SampleBatch {
+        let grid = self.grid;
+        let mut basis = vec![0.0f32; grid.num_basis()];
+        let mut b = SampleBatch { num_rays: rays.len(), ray_offsets: vec![0], ..Default::default() };
+        for ray in rays {
+            sh::eval_basis(grid.sh_degree, ray.view_dir, &mut basis);
+            let depth = self.walk(ray, params, |s| {
+                b.corner_rows.extend_from_slice(&s.rows);
+                b.corner_weights.extend_from_slice(&s.weights);
+                b.colour_weights.extend_from_slice(&s.colour_weights);
+                b.t.push(s.t);
+                b.delta.push(s.delta);
+                b.basis.extend_from_slice(&basis);
+            });
+            b.threshold_depth.push(depth);
+            b.ray_offsets.push(b.t.len() as u32);
+        }
+        b
     }
 
     /// Marches one ray and hands each of its samples, front to back, to
