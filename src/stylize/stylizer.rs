@@ -766,22 +766,33 @@ impl<'a> Stylizer<'a> {
         (grad, value.into_inner().map_or(0.0, scalar))
     }
 
-    /// Caches sample lists up to the configured memory: first the
-    /// registered pixels (a batch of them is rendered every step), then the views.
+    /// Caches sample lists up to the configured memory, the registered
+    /// pixels' lists (a batch of them is marched every step when they are
+    /// not cached) and the views' (a view is marched in its step), in the
+    /// order that saves the most marching per byte: registered first when
+    /// a step draws a larger share of them (`registered_rays` of all) than
+    /// of the views (one of all). Lego: 50,000 of about a million
+    /// registered pixels against one view of 100, registered first; fern:
+    /// 50,000 of 1.9 million against one of 17, views first.
     fn cache_samples(&mut self) {
         // Each march gives up as soon as it would overrun what is left of the
         // budget, so memory never holds more than the budget plus one chunk.
         let budget = self.cfg.sample_cache_mb * 1024 * 1024;
         let mut used = 0usize;
-        if self.job.method == Method::RefNpr && !self.registered.is_empty() {
-            let rays: Vec<Ray> = self.registered.iter().map(|p| self.pixel_ray(p.0 as usize, p.1 as usize)).collect();
-            self.registered_samples = self.march_rays_within(&rays, budget);
-            used += self.registered_samples.as_ref().map_or(0, FrozenSamples::bytes);
+        let wants_registered = self.job.method == Method::RefNpr && !self.registered.is_empty();
+        let views = self.dataset.train.len();
+        let registered_share = self.cfg.loss.registered_rays as f64 / self.registered.len().max(1) as f64;
+        let registered_first = registered_share >= 1.0 / views.max(1) as f64;
+        if wants_registered && registered_first {
+            self.cache_registered(budget, &mut used);
         }
-        for v in 0..self.dataset.train.len() {
+        for v in 0..views {
             let samples = self.march_rays_within(&self.dataset.train[v].camera.rays(self.ndc.as_ref()), budget - used);
             used += samples.as_ref().map_or(0, FrozenSamples::bytes);
             self.view_samples[v] = samples;
+        }
+        if wants_registered && !registered_first {
+            self.cache_registered(budget, &mut used);
         }
         let on_device = match self.cfg.samples_on_device {
             Placement::Auto => !is_host_memory(&self.device),
@@ -796,6 +807,14 @@ impl<'a> Stylizer<'a> {
                 self.registered_on_device = self.registered_samples.as_ref().map(upload);
             }
         }
+    }
+
+    /// Caches the registered pixels' sample lists when they fit in what is
+    /// left of `budget` (`used` bytes taken).
+    fn cache_registered(&mut self, budget: usize, used: &mut usize) {
+        let rays: Vec<Ray> = self.registered.iter().map(|p| self.pixel_ray(p.0 as usize, p.1 as usize)).collect();
+        self.registered_samples = self.march_rays_within(&rays, budget - *used);
+        *used += self.registered_samples.as_ref().map_or(0, FrozenSamples::bytes);
     }
 
     /// A step's pseudo-rays for L_ref: a batch of reference pixels and a
