@@ -80,23 +80,37 @@ impl GridGeometry {
     #[inline]
     pub fn trilinear(&self, g: Vec3) -> ([usize; 8], [f32; 8]) {
         let base = self.trilinear_base(g);
+        (std::array::from_fn(|c| self.corner_index(base, c)), self.trilinear_weights(g, base))
+    }
+
+    /// The flat lattice index of corner `c` (bit 0 = +z, bit 1 = +y, bit 2
+    /// = +x) of the cell at `base` (`trilinear_base`).
+    #[inline]
+    pub fn corner_index(&self, base: [usize; 3], c: usize) -> usize {
+        let (dx, dy, dz) = ((c >> 2) & 1, (c >> 1) & 1, c & 1);
+        self.flat(
+            (base[0] + dx).min(self.res[0] - 1),
+            (base[1] + dy).min(self.res[1] - 1),
+            (base[2] + dz).min(self.res[2] - 1),
+        )
+    }
+
+    /// The trilinear weights of the 8 corners of the cell at `base`
+    /// (`trilinear_base(g)`) for `g`, clamped into the lattice.
+    #[inline]
+    pub fn trilinear_weights(&self, g: Vec3, base: [usize; 3]) -> [f32; 8] {
         let mut frac = [0f32; 3];
         for a in 0..3 {
             let c = g[a].clamp(0.0, (self.res[a] - 1) as f32);
             frac[a] = if self.res[a] > 1 { c - base[a] as f32 } else { 0.0 };
         }
-        let mut idx = [0usize; 8];
-        let mut w = [0f32; 8];
-        for c in 0..8 {
+        std::array::from_fn(|c| {
             let (dx, dy, dz) = ((c >> 2) & 1, (c >> 1) & 1, c & 1);
-            let (i, j, k) = (base[0] + dx, base[1] + dy, base[2] + dz);
             let wx = if dx == 1 { frac[0] } else { 1.0 - frac[0] };
             let wy = if dy == 1 { frac[1] } else { 1.0 - frac[1] };
             let wz = if dz == 1 { frac[2] } else { 1.0 - frac[2] };
-            idx[c] = self.flat(i.min(self.res[0] - 1), j.min(self.res[1] - 1), k.min(self.res[2] - 1));
-            w[c] = wx * wy * wz;
-        }
-        (idx, w)
+            wx * wy * wz
+        })
     }
 
     /// Ray-box intersection in world units: (t_near, t_far) clipped to t >= 0.
