@@ -2,6 +2,8 @@
 //! in the NeRF / Plenoxels evaluations), and the speckle count (isolated
 //! pixel colour noise), on interleaved RGB images in [0, 1].
 
+use rayon::prelude::*;
+
 /// Peak signal-to-noise ratio in dB.
 pub fn psnr(a: &[f32], b: &[f32]) -> f32 {
     psnr_from_mse((squared_error(a, b) / a.len() as f64) as f32)
@@ -93,24 +95,29 @@ pub const SPECKLE_THRESHOLD: f32 = 0.1;
 pub fn speckle(rgb: &[f32], width: usize, height: usize, mask: &[bool]) -> (usize, usize) {
     assert_eq!(rgb.len(), width * height * 3, "speckle: image size");
     assert_eq!(mask.len(), width * height, "speckle: mask size");
-    let (mut speckled, mut counted) = (0, 0);
-    for y in 1..height.saturating_sub(1) {
-        for x in 1..width.saturating_sub(1) {
-            let around = |dy: usize, dx: usize| (y + dy - 1) * width + x + dx - 1;
-            if !(0..3).all(|dy| (0..3).all(|dx| mask[around(dy, dx)])) {
-                continue;
+    // Rows in parallel (an eval scores 120 frames of 190,000 pixels, each
+    // with three 9-value medians); integer counts, so the sum is exact.
+    (1..height.saturating_sub(1))
+        .into_par_iter()
+        .map(|y| {
+            let (mut speckled, mut counted) = (0, 0);
+            for x in 1..width.saturating_sub(1) {
+                let around = |dy: usize, dx: usize| (y + dy - 1) * width + x + dx - 1;
+                if !(0..3).all(|dy| (0..3).all(|dx| mask[around(dy, dx)])) {
+                    continue;
+                }
+                counted += 1;
+                let centre = y * width + x;
+                let noisy = (0..3).any(|c| {
+                    let mut v: [f32; 9] = std::array::from_fn(|k| rgb[around(k / 3, k % 3) * 3 + c]);
+                    let (_, median, _) = v.select_nth_unstable_by(4, f32::total_cmp);
+                    (rgb[centre * 3 + c] - *median).abs() > SPECKLE_THRESHOLD
+                });
+                speckled += usize::from(noisy);
             }
-            counted += 1;
-            let centre = y * width + x;
-            let noisy = (0..3).any(|c| {
-                let mut v: [f32; 9] = std::array::from_fn(|k| rgb[around(k / 3, k % 3) * 3 + c]);
-                v.sort_by(f32::total_cmp);
-                (rgb[centre * 3 + c] - v[4]).abs() > SPECKLE_THRESHOLD
-            });
-            speckled += usize::from(noisy);
-        }
-    }
-    (speckled, counted)
+            (speckled, counted)
+        })
+        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
 }
 
 #[cfg(test)]

@@ -28,6 +28,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail, ensure};
 use glam::Vec3;
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::eval::metrics;
@@ -418,9 +419,13 @@ fn stability(frames: &[SurfaceRender], tol: Tolerance) -> Vec<Stability> {
         .iter()
         .filter(|&&g| g < frames.len())
         .map(|&gap| {
+            // Frame pairs in parallel, summed in order (the same bits as a serial loop).
+            let pairs: Vec<(f64, usize)> = (0..frames.len() - gap)
+                .into_par_iter()
+                .map(|i| warp_error(&frames[i], &frames[i + gap], tol))
+                .collect();
             let (mut sum, mut n) = (0.0, 0);
-            for i in 0..frames.len() - gap {
-                let (s, c) = warp_error(&frames[i], &frames[i + gap], tol);
+            for (s, c) in pairs {
                 sum += s;
                 n += c;
             }
