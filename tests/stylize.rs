@@ -84,15 +84,24 @@ fn losses_match_hand_computed_values() {
 #[test]
 fn frozen_render_matches_hand_compositing() {
     let d = common::device();
-    // Two grid rows; each sample uses one row with full weight.
+    // Two grid rows, one cell each (all corners on the one row). The
+    // first sample sits on corner 0 (colour weight 1 there); the second
+    // half-way between corners 0 and 1 (bit 0 is z), colour weights 0.5 and
+    // 0.5, the other corners inactive.
     let samples = FrozenSamples {
         num_rays: 1,
         ray_offsets: vec![0, 2],
-        corner_rows: vec![0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1],
-        colour_weights: vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+        ray_cells: vec![0, 2],
+        cell_rows: vec![0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1],
+        cell_active: vec![0xff, 0b11],
+        starts_cell: vec![true, true],
+        fractions: vec![[0.0, 0.0, 0.0], [0.0, 0.0, 0.5]],
         weight: vec![0.4, 0.3],
         final_transmittance: vec![0.3],
+        colour_corners: march::ColourCorners::Renormalised,
     };
+    let (_, colour_weights) = samples.expanded();
+    assert_eq!(colour_weights, [1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
     // Row 0 colour = C0 * c + 0.5: c = 0 -> 0.5 grey; row 1: c = 1/C0 -> 1.5 (no upper clamp), c = -2/C0 -> 0 (ReLU).
     let c0 = refnpr::scene::sh::C0;
     let sh = floats(vec![0.0, 0.0, 0.0, 1.0 / c0, -2.0 / c0, 0.0], [2, 3], &d);
@@ -305,8 +314,11 @@ fn chunked_march_equals_one_march_and_respects_its_budget() {
     assert!(whole.num_samples() > 1000, "the camera sees the blob");
     assert_eq!(chunked.num_rays, whole.num_rays);
     assert_eq!(chunked.ray_offsets, whole.ray_offsets);
-    assert_eq!(chunked.corner_rows, whole.corner_rows);
-    assert_eq!(chunked.colour_weights, whole.colour_weights);
+    assert_eq!(chunked.ray_cells, whole.ray_cells);
+    assert_eq!(chunked.cell_rows, whole.cell_rows);
+    assert_eq!(chunked.cell_active, whole.cell_active);
+    assert_eq!(chunked.starts_cell, whole.starts_cell);
+    assert_eq!(chunked.fractions, whole.fractions);
     assert_eq!(chunked.weight, whole.weight);
     assert_eq!(chunked.final_transmittance, whole.final_transmittance);
     assert!(FrozenSamples::march_within(&Marcher::new(&grid), &rays, &march, 1e-5, 7, whole.bytes()).is_some());
@@ -369,11 +381,11 @@ fn deferred_backprop_equals_direct_backprop() {
     assert_eq!(reused, deferred);
     // Sparse: the touched rows' gradients, in touched order; nothing elsewhere.
     let mut touched = StepRows::sparse(grid.num_rows());
-    touched.add(&samples.corner_rows);
+    touched.add(&samples.cell_rows);
     let local = to_vec(chunked_gradient(&grid.sh, &samples, bg, 173, &touched, &|rgb, start, len| {
         (rgb * g.clone().narrow(0, start, len)).sum()
     }));
-    let in_samples: std::collections::HashSet<i32> = samples.corner_rows.iter().copied().collect();
+    let in_samples: std::collections::HashSet<i32> = samples.cell_rows.iter().copied().collect();
     for r in 0..grid.num_rows() as i32 {
         let ours = &deferred[r as usize * 3..r as usize * 3 + 3];
         if in_samples.contains(&r) {
@@ -415,7 +427,7 @@ fn deferred_backprop_equals_direct_backprop() {
     };
     let target = floats((0..picks.len() * 3).map(|i| (i % 7) as f32 / 7.0).collect(), [picks.len(), 3], &d);
     let mut touched_picks = StepRows::sparse(grid.num_rows());
-    touched_picks.add(&cut.corner_rows);
+    touched_picks.add(&cut.cell_rows);
     for rows in [&rows, &touched_picks] {
         let host = to_vec(chunked_gradient(&grid.sh, &cut, bg, 977, rows, &mse_of(target.clone())));
         let chunks = (0..picks.len()).step_by(977).map(|s| {
@@ -471,7 +483,7 @@ fn host_ray_kernel_matches_the_graph() {
     let target_t = floats(target.clone(), [picks.len(), 3], &d);
     for sparse in [false, true] {
         let mut rows = if sparse { StepRows::sparse(grid.num_rows()) } else { StepRows::dense(grid.num_rows()) };
-        rows.add(&cut.corner_rows);
+        rows.add(&cut.cell_rows);
         let graph = to_vec(chunked_gradient(&grid.sh, &cut, bg, 700, &rows, &|rgb, start, len| {
             let diff = rgb - target_t.clone().narrow(0, start, len);
             (diff.clone() * diff).sum() * scale

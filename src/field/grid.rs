@@ -25,6 +25,19 @@ pub struct GridGeometry {
     pub bbox_max: Vec3,
 }
 
+/// The trilinear weights of the 8 corners of a cell (corner `c` is offset
+/// by bits 2, 1, 0 of `c` along x, y, z) at `frac` inside it.
+#[inline]
+pub fn weights_of_fractions(frac: [f32; 3]) -> [f32; 8] {
+    std::array::from_fn(|c| {
+        let (dx, dy, dz) = ((c >> 2) & 1, (c >> 1) & 1, c & 1);
+        let wx = if dx == 1 { frac[0] } else { 1.0 - frac[0] };
+        let wy = if dy == 1 { frac[1] } else { 1.0 - frac[1] };
+        let wz = if dz == 1 { frac[2] } else { 1.0 - frac[2] };
+        wx * wy * wz
+    })
+}
+
 impl GridGeometry {
     pub fn new(res: [usize; 3], bbox_min: Vec3, bbox_max: Vec3) -> Self {
         Self { res, bbox_min, bbox_max }
@@ -99,18 +112,19 @@ impl GridGeometry {
     /// (`trilinear_base(g)`) for `g`, clamped into the lattice.
     #[inline]
     pub fn trilinear_weights(&self, g: Vec3, base: [usize; 3]) -> [f32; 8] {
+        weights_of_fractions(self.trilinear_fractions(g, base))
+    }
+
+    /// Where `g` lies inside the cell at `base`, per axis in [0, 1],
+    /// clamped into the lattice: what the 8 trilinear weights are made of.
+    #[inline]
+    pub fn trilinear_fractions(&self, g: Vec3, base: [usize; 3]) -> [f32; 3] {
         let mut frac = [0f32; 3];
         for a in 0..3 {
             let c = g[a].clamp(0.0, (self.res[a] - 1) as f32);
             frac[a] = if self.res[a] > 1 { c - base[a] as f32 } else { 0.0 };
         }
-        std::array::from_fn(|c| {
-            let (dx, dy, dz) = ((c >> 2) & 1, (c >> 1) & 1, c & 1);
-            let wx = if dx == 1 { frac[0] } else { 1.0 - frac[0] };
-            let wy = if dy == 1 { frac[1] } else { 1.0 - frac[1] };
-            let wz = if dz == 1 { frac[2] } else { 1.0 - frac[2] };
-            wx * wy * wz
-        })
+        frac
     }
 
     /// Ray-box intersection in world units: (t_near, t_far) clipped to t >= 0.

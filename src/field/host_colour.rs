@@ -20,7 +20,7 @@ use rayon::prelude::*;
 
 use crate::field::relu;
 
-use crate::field::frozen::FrozenSamples;
+use crate::field::frozen::{FrozenSamples, ListedSample};
 use crate::scene::sh;
 use crate::util::pool::{BufferPool, sum_in_order};
 
@@ -55,33 +55,32 @@ where
         .map(|p| {
             let mut grad = PART_BUFFERS.zeroed(slots * 3);
             let mut total = 0.0f64;
-            // The ray's interpolated coefficients, kept from the colour for the gradient.
-            let mut coefficients: Vec<[f32; 3]> = Vec::new();
+            // The ray's samples and interpolated coefficients, kept from the colour for the gradient.
+            let mut listed: Vec<(ListedSample, [f32; 3])> = Vec::new();
             for k in p * per_part..((p + 1) * per_part).min(n) {
                 let r = rays.map_or(k, |rs| rs[k]);
-                let (lo, hi) = (samples.ray_offsets[r] as usize, samples.ray_offsets[r + 1] as usize);
-                coefficients.clear();
-                coefficients.extend((lo..hi).map(|s| interpolate(sh, samples, s)));
-                let rgb =
-                    composite(samples, lo, coefficients.iter().copied(), samples.final_transmittance[r], background);
+                listed.clear();
+                listed.extend(samples.ray_samples(r).map(|s| {
+                    let pre = interpolate(sh, &s);
+                    (s, pre)
+                }));
+                let rgb = composite(samples, listed.iter().map(|(s, pre)| (s.index, *pre)), r, background);
                 let (d_rgb, value) = loss(k, rgb);
                 total += value as f64;
                 if d_rgb == [0.0; 3] {
                     continue;
                 }
-                for (s, pre) in (lo..hi).zip(&coefficients) {
-                    let w = samples.weight[s] * sh::C0;
+                for (s, pre) in &listed {
+                    let w = samples.weight[s.index] * sh::C0;
                     for (c, &pre_c) in pre.iter().enumerate() {
                         // d/d(coefficient) of max(C0 x + 0.5, 0), zero where clamped.
                         let g = if sh::C0 * pre_c + 0.5 > 0.0 { w * d_rgb[c] } else { 0.0 };
                         if g == 0.0 {
                             continue;
                         }
-                        for j in 0..8 {
-                            let t = samples.colour_weights[s * 8 + j];
+                        for (&t, &row) in s.colour_weights.iter().zip(s.rows) {
                             if t != 0.0 {
-                                let row = slot(samples.corner_rows[s * 8 + j]) as usize;
-                                grad[row * 3 + c] += t * g;
+                                grad[slot(row) as usize * 3 + c] += t * g;
                             }
                         }
                     }
@@ -109,20 +108,18 @@ pub fn render(sh: &[f32], samples: &FrozenSamples, rays: Option<&[usize]>, backg
     out.par_chunks_mut(3 * 1024).enumerate().for_each(|(p, chunk)| {
         for (i, px) in chunk.chunks_mut(3).enumerate() {
             let r = rays.map_or(p * 1024 + i, |rs| rs[p * 1024 + i]);
-            let (lo, hi) = (samples.ray_offsets[r] as usize, samples.ray_offsets[r + 1] as usize);
-            let coefficients = (lo..hi).map(|s| interpolate(sh, samples, s));
-            px.copy_from_slice(&composite(samples, lo, coefficients, samples.final_transmittance[r], background));
+            let coefficients = samples.ray_samples(r).map(|s| (s.index, interpolate(sh, &s)));
+            px.copy_from_slice(&composite(samples, coefficients, r, background));
         }
     });
     out
 }
 
-/// The interpolated SH coefficients of sample `s`.
-fn interpolate(sh: &[f32], samples: &FrozenSamples, s: usize) -> [f32; 3] {
+/// The interpolated SH coefficients of a sample.
+fn interpolate(sh: &[f32], s: &ListedSample) -> [f32; 3] {
     let mut pre = [0.0f32; 3];
-    for j in 0..8 {
-        let t = samples.colour_weights[s * 8 + j];
-        let row = samples.corner_rows[s * 8 + j] as usize;
+    for (&t, &row) in s.colour_weights.iter().zip(s.rows) {
+        let row = row as usize;
         for c in 0..3 {
             pre[c] += t * sh[row * 3 + c];
         }
@@ -130,17 +127,16 @@ fn interpolate(sh: &[f32], samples: &FrozenSamples, s: usize) -> [f32; 3] {
     pre
 }
 
-/// The colour of a ray whose samples, from `lo` on, have the interpolated
+/// The colour of ray `r`, whose samples (by index) have the interpolated
 /// coefficients `coefficients`, composited over the background.
 fn composite(
     samples: &FrozenSamples,
-    lo: usize,
-    coefficients: impl IntoIterator<Item = [f32; 3]>,
-    transmittance: f32,
+    coefficients: impl IntoIterator<Item = (usize, [f32; 3])>,
+    r: usize,
     background: [f32; 3],
 ) -> [f32; 3] {
-    let mut rgb = background.map(|b| b * transmittance);
-    for (s, pre) in (lo..).zip(coefficients) {
+    let mut rgb = background.map(|b| b * samples.final_transmittance[r]);
+    for (s, pre) in coefficients {
         for c in 0..3 {
             rgb[c] += samples.weight[s] * relu(sh::C0 * pre[c] + 0.5);
         }

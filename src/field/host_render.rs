@@ -70,8 +70,10 @@ pub(crate) fn sample_colour(
 
 /// Marches and renders `rays` in one pass per ray (`composite::composite`'s
 /// arithmetic, per ray, on the samples as `Marcher::walk` finds them:
-/// no packed batch, no per-sample tensors): the views rendered on the CPU backends. `density` is the
-/// grid's density mirror, `sh` its SH rows as host numbers.
+/// no packed batch, no per-sample tensors): the views rendered on the CPU
+/// backends. `sh` is the grid's SH rows as host numbers; each sample's
+/// density is the march's own (`MarchSample::sigma`, read from the
+/// density mirror), not read again.
 pub fn render_rays(
     marcher: &Marcher,
     sh: &[f32],
@@ -80,7 +82,7 @@ pub fn render_rays(
     background: [f32; 3],
 ) -> RaysRender {
     let grid = marcher.grid();
-    let (density, degree, num_basis) = (&grid.density_cpu[..], grid.sh_degree, grid.num_basis());
+    let (degree, num_basis) = (grid.sh_degree, grid.num_basis());
     let n = rays.len();
     let mut out = RaysRender {
         rgb: vec![0.0; n * 3],
@@ -100,12 +102,8 @@ pub fn render_rays(
                 sh::eval_basis(degree, ray.view_dir, &mut basis);
                 let (mut colour, mut d, mut optical) = ([0.0f32; 3], 0.0f32, 0.0f32);
                 threshold[i] = marcher.walk(ray, params, |s| {
-                    let mut sigma = 0.0f32;
-                    for (w, &row) in s.weights.iter().zip(&s.rows) {
-                        sigma += w * density[row as usize];
-                    }
                     let pre = sample_colour(sh, num_basis, &s.rows, &s.colour_weights, &basis);
-                    let tau = relu(sigma) * s.delta;
+                    let tau = relu(s.sigma) * s.delta;
                     let weight = (-optical).exp() * (1.0 - (-tau).exp());
                     optical += tau;
                     for (value, pre) in colour.iter_mut().zip(pre) {

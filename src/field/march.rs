@@ -5,18 +5,19 @@
 //! trilinear gathers, colours, transmittance, weights, per-ray sums - is the
 //! Burn graph in `composite` (and `frozen` for the stylization).
 
-use crate::field::grid::RadianceGrid;
+use crate::field::grid::{RadianceGrid, weights_of_fractions};
 use crate::scene::camera::Ray;
 use crate::scene::sh;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// How a sample's colour treats the empty (inactive) corners of its voxel.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ColourCorners {
     /// The trilinear weights renormalised over the active corners: empty
     /// space has no colour, so it must not pull surfaces towards grey.
+    #[default]
     Renormalised,
     /// Empty corners count as zero coefficients (svox2): at a silhouette
     /// the colour is pulled towards SH 0 (grey 0.5).
@@ -94,8 +95,13 @@ pub struct MarchSample {
     pub rows: [i32; 8],
     /// Trilinear density weights (inactive corners: 0).
     pub weights: [f32; 8],
-    /// Colour interpolation weights (see `ColourCorners`; inactive corners: 0).
+    /// Colour interpolation weights (see `ColourCorners`; inactive corners:
+    /// 0), `colour_weights(weights_of_fractions(fractions), active, ..)`.
     pub colour_weights: [f32; 8],
+    /// Where the sample lies inside its cell (`GridGeometry::trilinear_fractions`).
+    pub fractions: [f32; 3],
+    /// Which corners are active: bit `c` for corner `c`.
+    pub active: u8,
     /// Distance along the ray and the interval length.
     pub t: f32,
     pub delta: f32,
@@ -103,15 +109,38 @@ pub struct MarchSample {
     pub sigma: f32,
 }
 
-/// The 8 lattice corners around a point: their rows (-1 = empty), trilinear
-/// weights, the first active row, the interpolated density (empty = 0) and
-/// the weight of the active corners.
+/// The 8 lattice corners around a point: their rows (-1 = empty), where
+/// the point lies in the cell, its trilinear weights, the first active
+/// row, the interpolated density (empty = 0) and which corners are active.
 struct Corners {
     rows: [i32; 8],
+    fractions: [f32; 3],
     w: [f32; 8],
     first_active: i32,
     sigma: f32,
-    wsum: f32,
+    active: u8,
+}
+
+/// The weights a sample's colour is interpolated with, from its trilinear
+/// weights `w` and which corners are `active` (bit `c`): inactive corners
+/// get 0; the active ones are renormalised to sum to 1 or kept as they are
+/// (`ColourCorners`). One definition for the march and for sample lists
+/// that keep only the fractions and the bits (`FrozenSamples`).
+#[inline]
+pub fn colour_weights(w: &[f32; 8], active: u8, corners: ColourCorners) -> [f32; 8] {
+    let sum = match corners {
+        ColourCorners::Renormalised => {
+            let mut sum = 0.0f32;
+            for (c, &wc) in w.iter().enumerate() {
+                if active & (1 << c) != 0 {
+                    sum += wc;
+                }
+            }
+            sum
+        }
+        ColourCorners::Zero => 1.0,
+    };
+    std::array::from_fn(|c| if active & (1 << c) != 0 { w[c] / sum } else { 0.0 })
 }
 
 /// The lattice rows and densities of the cell a ray sampled last:
@@ -143,15 +172,16 @@ fn corners(grid: &RadianceGrid, pos: glam::Vec3, cell: &mut LastCell) -> Corners
             cell.density[c] = if r >= 0 { grid.density_cpu[r as usize] } else { 0.0 };
         }
     }
-    let w = geo.trilinear_weights(g, base);
-    let mut out = Corners { rows: cell.rows, w, first_active: -1, sigma: 0.0, wsum: 0.0 };
-    for ((&r, &w), &density) in cell.rows.iter().zip(&w).zip(&cell.density) {
+    let fractions = geo.trilinear_fractions(g, base);
+    let w = weights_of_fractions(fractions);
+    let mut out = Corners { rows: cell.rows, fractions, w, first_active: -1, sigma: 0.0, active: 0 };
+    for (c, ((&r, &w), &density)) in cell.rows.iter().zip(&w).zip(&cell.density).enumerate() {
         if r >= 0 {
             if out.first_active < 0 {
                 out.first_active = r;
             }
             out.sigma += w * density;
-            out.wsum += w;
+            out.active |= 1 << c;
         }
     }
     out
@@ -390,17 +420,21 @@ impl<'a> Marcher<'a> {
                 continue;
             }
             k += 1;
-            let Corners { rows, w, first_active, sigma, wsum } = corners(grid, ray.origin + t * ray.dir, &mut cell);
+            let Corners { rows, fractions, w, first_active, sigma, active } =
+                corners(grid, ray.origin + t * ray.dir, &mut cell);
             if first_active >= 0 && sigma > p.sigma_threshold {
-                let colour_weight_sum = match p.colour_corners {
-                    ColourCorners::Renormalised => wsum,
-                    ColourCorners::Zero => 1.0,
+                let mut sample = MarchSample {
+                    rows,
+                    weights: w,
+                    colour_weights: colour_weights(&w, active, p.colour_corners),
+                    fractions,
+                    active,
+                    t,
+                    delta: step,
+                    sigma,
                 };
-                let mut sample = MarchSample { rows, weights: w, colour_weights: [0.0; 8], t, delta: step, sigma };
-                for c in 0..8 {
-                    if rows[c] >= 0 {
-                        sample.colour_weights[c] = w[c] / colour_weight_sum;
-                    } else {
+                for (c, &row) in rows.iter().enumerate() {
+                    if row < 0 {
                         sample.rows[c] = first_active;
                         sample.weights[c] = 0.0;
                     }

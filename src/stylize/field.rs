@@ -257,8 +257,8 @@ impl DeviceChunk {
         device: &burn::tensor::Device,
     ) -> Self {
         let mut part = samples.range(start, len);
-        subset.reset_to(num_grid_rows, &part.corner_rows);
-        for r in part.corner_rows.iter_mut() {
+        subset.reset_to(num_grid_rows, &part.cell_rows);
+        for r in part.cell_rows.iter_mut() {
             *r = subset.local(*r);
         }
         let rows = subset.rows().to_vec();

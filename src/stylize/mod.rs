@@ -128,6 +128,22 @@ impl CurvePoint {
     }
 }
 
+/// What the stylization's sample cache holds: which lists fit in
+/// `sample_cache_mb` (the others are marched in each step that needs them).
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct SampleCacheReport {
+    pub budget_mb: usize,
+    pub views_cached: usize,
+    pub views: usize,
+    /// Whether the registered pixels' lists are cached (Ref-NPR with L_ref).
+    pub registered_cached: bool,
+    /// Bytes of the cached lists, their samples and their cells (samples
+    /// of one ray in one lattice cell share a cell entry).
+    pub mb: f64,
+    pub samples: usize,
+    pub cells: usize,
+}
+
 /// `STYLE_RUN/stylize.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct StylizeReport {
@@ -160,6 +176,8 @@ pub struct StylizeReport {
     /// Resident and peak memory when each phase ended (registration,
     /// refit, content, image_epochs: the image epochs and the smooth update).
     pub memory: BTreeMap<String, crate::util::memory::MemoryNow>,
+    /// What the sample cache (`sample_cache_mb`) holds.
+    pub sample_cache: SampleCacheReport,
     pub final_losses: Option<CurvePoint>,
     pub curve: Vec<CurvePoint>,
     pub warnings: Vec<String>,

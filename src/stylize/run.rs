@@ -98,6 +98,17 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let colour = job.method == Method::RefNpr && cfg.ablation.use_colour_loss && case.color_pre;
     let m = transfer::measure(|| st.guidance(&styles, keeps_content(job), colour, progress));
     let (guidance, colour_matched) = m.value?;
+    let sample_cache = st.sample_cache_report();
+    progress.event(Event::Detail(format!(
+        "sample cache: {} of {} views{}, {:.0} MB of {} ({} samples in {} cells)",
+        sample_cache.views_cached,
+        sample_cache.views,
+        if sample_cache.registered_cached { " and the registered pixels" } else { "" },
+        sample_cache.mb,
+        sample_cache.budget_mb,
+        sample_cache.samples,
+        sample_cache.cells
+    )));
     seconds.insert("content".to_string(), m.seconds);
     memory.insert("content".to_string(), MemoryNow::read());
     moved.insert("content".to_string(), PhaseTransfers::new(m.moved, dataset.train.len()));
@@ -159,6 +170,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         step_profiles: std::mem::take(&mut st.step_profiles),
         peak_rss_mb: peak_rss_mb(),
         memory,
+        sample_cache,
         final_losses: st.curve.iter().rev().find(|p| p.phase != StepKind::Refit).cloned(),
         curve: std::mem::take(&mut st.curve),
         warnings: warnings.into_vec(),

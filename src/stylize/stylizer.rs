@@ -35,7 +35,7 @@ use crate::stylize::losses;
 use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::styles::{colour_stats, is_background};
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
-use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
+use crate::stylize::{CurvePoint, Method, SampleCacheReport, StepKind, StylizeJob};
 use crate::util::diverged;
 use crate::util::image::Image;
 use crate::util::profile::{PartTime, StepProfile};
@@ -67,10 +67,9 @@ struct PseudoRays<'s> {
 }
 
 impl PseudoRays<'_> {
-    /// The corner rows of each ray's samples (the step's rows).
+    /// The corner rows of each ray's cells (the step's rows).
     fn corner_rows(&self) -> impl Iterator<Item = &[i32]> {
-        let offsets = &self.lists.ray_offsets;
-        self.rays.iter().map(move |&r| &self.lists.corner_rows[offsets[r] as usize * 8..offsets[r + 1] as usize * 8])
+        self.rays.iter().map(move |&r| self.lists.ray_rows(r))
     }
 }
 
@@ -177,6 +176,12 @@ pub struct Stylizer<'a> {
     device: Device,
     /// Cached sample lists of the training views (None = re-marched when needed).
     view_samples: Vec<Option<FrozenSamples>>,
+    /// Whether `cache_samples` has run (it runs once, before the refit or,
+    /// in a resumed run, before the guidance).
+    samples_cached: bool,
+    /// Where each training view's pixels start among all training pixels
+    /// (views one after another), and their total last.
+    view_first_pixel: Vec<usize>,
     /// Device copies of the cached views' lists (`samples_on_device`).
     views_on_device: Vec<Option<DeviceSamples>>,
     /// Sample lists of the reference views, one after another; reference
@@ -253,6 +258,13 @@ impl<'a> Stylizer<'a> {
             ad,
             device: job.backend.device(),
             view_samples: vec![None; dataset.train.len()],
+            samples_cached: false,
+            view_first_pixel: std::iter::once(0)
+                .chain(dataset.train.iter().scan(0, |end, v| {
+                    *end += v.camera.intrinsics.width as usize * v.camera.intrinsics.height as usize;
+                    Some(*end)
+                }))
+                .collect(),
             views_on_device: vec![None; dataset.train.len()],
             reference_lists: FrozenSamples::default(),
             reference_first_ray: vec![0],
@@ -503,7 +515,7 @@ impl<'a> Stylizer<'a> {
         let (pseudo, tv, rows) = self.profile.time("step_rows", || {
             let pseudo = if self.job.method == Method::RefNpr { self.pseudo_ray_batch(&mut rng) } else { Vec::new() };
             let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
-            let corners: Vec<&[i32]> = std::iter::once(&samples.corner_rows[..])
+            let corners: Vec<&[i32]> = std::iter::once(&samples.cell_rows[..])
                 .chain(pseudo.iter().flat_map(PseudoRays::corner_rows))
                 .collect();
             let rows = self.field.step_rows(self.cfg.optim.sparse, &corners, &tv);
@@ -583,6 +595,13 @@ impl<'a> Stylizer<'a> {
         }
     }
 
+    /// Which training view and pixel the `i`-th of `Dataset::pixel_rays`
+    /// of the training views is (views one after another).
+    fn view_pixel(&self, i: usize) -> (usize, usize) {
+        let v = self.view_first_pixel.partition_point(|&first| first <= i) - 1;
+        (v, i - self.view_first_pixel[v])
+    }
+
     /// The ray through pixel `p` of training view `v` (NDC-warped for forward-facing scenes).
     fn pixel_ray(&self, v: usize, p: usize) -> Ray {
         let camera = &self.dataset.train[v].camera;
@@ -659,22 +678,26 @@ impl<'a> Stylizer<'a> {
     /// Ray epochs: refit the degree-0 colour to the photos (MSE, SH TV);
     /// ARF: to the recoloured photos.
     pub fn refit(&mut self, progress: &dyn Progress) -> Result<()> {
-        let (rays, mut colours) = self.dataset.pixel_rays(&self.dataset.train);
+        let mut colours: Vec<[f32; 3]> =
+            self.dataset.train.iter().flat_map(|v| crate::util::image::pixels(&v.rgb)).collect();
         if let Some(tf) = &self.colour_transfer {
             // Background pixels stay: rays that miss the scene render the
             // fixed background colour, and a recoloured target there could
             // never be fitted (lego: 70 % of the pixels).
             colours.iter_mut().filter(|c| !is_background(c, self.background)).for_each(|c| *c = tf.apply(*c));
         }
+        // The refit's rays are training pixels: with the views' lists cached
+        // first, a step copies its rays' lists instead of marching them.
+        self.cache_samples();
         let s = &self.cfg.schedule;
-        let steps = (s.ray_epochs as f64 * rays.len() as f64 / s.ray_batch as f64).ceil() as usize;
+        let steps = (s.ray_epochs as f64 * colours.len() as f64 / s.ray_batch as f64).ceil() as usize;
         progress.event(Event::Start { phase: Phase::Refit, done: 0, total: steps });
         if !self.cfg.optim.keep_state {
             self.field.reset_optimiser();
         }
         for step in 0..steps {
             let started = std::time::Instant::now();
-            let mse = self.refit_step(step, &rays, &colours);
+            let mse = self.refit_step(step, &colours);
             diverged::check_loss(mse, Phase::Refit, step + 1, || self.what_is_kept())?;
             let message = format!("mse {mse:.5} psnr {:.2}", psnr_from_mse(mse));
             progress.event(Event::Step { phase: Phase::Refit, done: step + 1, total: steps, message });
@@ -684,18 +707,21 @@ impl<'a> Stylizer<'a> {
         Ok(())
     }
 
-    /// One refit step: a seeded batch of photo rays, their MSE gradient plus
-    /// SH TV, one RMSprop step. Returns the batch's MSE.
-    fn refit_step(&mut self, step: usize, rays: &[Ray], colours: &[[f32; 3]]) -> f32 {
+    /// One refit step: a seeded batch of training pixels (`colours`, their
+    /// targets, views one after another), their MSE gradient plus SH TV,
+    /// one RMSprop step. Returns the batch's MSE.
+    fn refit_step(&mut self, step: usize, colours: &[[f32; 3]]) -> f32 {
         let s = &self.cfg.schedule;
         let mut rng = step_rng(self.cfg.seed, Stream::Refit, step);
-        let picks: Vec<usize> = (0..s.ray_batch).map(|_| rng.random_range(0..rays.len())).collect();
-        let batch_rays: Vec<Ray> = picks.iter().map(|&i| rays[i]).collect();
+        let picks: Vec<usize> = (0..s.ray_batch).map(|_| rng.random_range(0..colours.len())).collect();
         let target: Vec<f32> = picks.iter().flat_map(|&i| colours[i]).collect();
-        let samples = self.profile.time("march", || self.march_rays(&batch_rays));
+        let samples = self.profile.time("sample_lists", || {
+            let pixels: Vec<(usize, usize)> = picks.iter().map(|&i| self.view_pixel(i)).collect();
+            self.pixel_lists(&pixels)
+        });
         let (tv, rows) = self.profile.time("step_rows", || {
             let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
-            let rows = self.field.step_rows(self.cfg.optim.sparse, &[&samples.corner_rows], &tv);
+            let rows = self.field.step_rows(self.cfg.optim.sparse, &[&samples.cell_rows], &tv);
             (tv, rows)
         });
         let (grad, mse) = self.profile.time("photo_loss", || match self.host_kernel() {
@@ -766,20 +792,34 @@ impl<'a> Stylizer<'a> {
         (grad, value.into_inner().map_or(0.0, scalar))
     }
 
-    /// Caches sample lists up to the configured memory, the registered
-    /// pixels' lists (a batch of them is marched every step when they are
-    /// not cached) and the views' (a view is marched in its step), in the
-    /// order that saves the most marching per byte: registered first when
-    /// a step draws a larger share of them (`registered_rays` of all) than
+    /// Caches the views' sample lists up to the configured memory (a view
+    /// the cache does not hold is marched in its step). On the host that is
+    /// all: a registered pixel's ray is its view's, so L_ref's pseudo-rays
+    /// copy their lists from the cached views (`registered_lists`) and
+    /// march only those of views not held.
+    ///
+    /// Lists kept on the device (`samples_on_device`) also keep the
+    /// registered pixels' lists as a set of their own (the device gathers
+    /// a step's pseudo-rays from one set), cached before or after the
+    /// views, whichever saves the more marching per byte: first when a
+    /// step draws a larger share of them (`registered_rays` of all) than
     /// of the views (one of all). Lego: 50,000 of about a million
-    /// registered pixels against one view of 100, registered first; fern:
-    /// 50,000 of 1.9 million against one of 17, views first.
+    /// registered pixels against one view of 100, first; fern: 50,000 of
+    /// 1.9 million against one of 17, after.
     fn cache_samples(&mut self) {
+        if std::mem::replace(&mut self.samples_cached, true) {
+            return;
+        }
         // Each march gives up as soon as it would overrun what is left of the
         // budget, so memory never holds more than the budget plus one chunk.
         let budget = self.cfg.sample_cache_mb * 1024 * 1024;
         let mut used = 0usize;
-        let wants_registered = self.job.method == Method::RefNpr && !self.registered.is_empty();
+        let on_device = match self.cfg.samples_on_device {
+            Placement::Auto => !is_host_memory(&self.device),
+            Placement::Device => true,
+            Placement::Host => false,
+        };
+        let wants_registered = on_device && self.job.method == Method::RefNpr && !self.registered.is_empty();
         let views = self.dataset.train.len();
         let registered_share = self.cfg.loss.registered_rays as f64 / self.registered.len().max(1) as f64;
         let registered_first = registered_share >= 1.0 / views.max(1) as f64;
@@ -794,11 +834,6 @@ impl<'a> Stylizer<'a> {
         if wants_registered && !registered_first {
             self.cache_registered(budget, &mut used);
         }
-        let on_device = match self.cfg.samples_on_device {
-            Placement::Auto => !is_host_memory(&self.device),
-            Placement::Device => true,
-            Placement::Host => false,
-        };
         if on_device {
             let upload = |s: &FrozenSamples| DeviceSamples::upload(s, &self.device);
             self.views_on_device = self.view_samples.iter().map(|s| s.as_ref().map(upload)).collect();
@@ -806,6 +841,21 @@ impl<'a> Stylizer<'a> {
                 self.reference_on_device = Some(upload(&self.reference_lists));
                 self.registered_on_device = self.registered_samples.as_ref().map(upload);
             }
+        }
+    }
+
+    /// What the sample cache holds (after `guidance`).
+    pub fn sample_cache_report(&self) -> SampleCacheReport {
+        let cached: Vec<&FrozenSamples> =
+            self.view_samples.iter().flatten().chain(self.registered_samples.as_ref()).collect();
+        SampleCacheReport {
+            budget_mb: self.cfg.sample_cache_mb,
+            views_cached: self.view_samples.iter().flatten().count(),
+            views: self.view_samples.len(),
+            registered_cached: self.registered_samples.is_some(),
+            mb: cached.iter().map(|s| s.bytes()).sum::<usize>() as f64 / (1024.0 * 1024.0),
+            samples: cached.iter().map(|s| s.num_samples()).sum(),
+            cells: cached.iter().map(|s| s.num_cells()).sum(),
         }
     }
 
@@ -862,17 +912,45 @@ impl<'a> Stylizer<'a> {
                     target,
                 },
                 None => {
-                    let rays: Vec<Ray> = picks
-                        .iter()
-                        .map(|&i| self.pixel_ray(self.registered[i].0 as usize, self.registered[i].1 as usize))
-                        .collect();
-                    let marched = self.march_rays(&rays);
-                    let rays = (0..marched.num_rays).collect();
-                    PseudoRays { lists: Cow::Owned(marched), on_device: None, rays, target }
+                    let lists = self.registered_lists(&picks);
+                    let rays = (0..lists.num_rays).collect();
+                    PseudoRays { lists: Cow::Owned(lists), on_device: None, rays, target }
                 }
             });
         }
         groups
+    }
+
+    /// The sample lists of the registered pixels `picks`, in that order.
+    fn registered_lists(&self, picks: &[usize]) -> FrozenSamples {
+        let pixels: Vec<(usize, usize)> =
+            picks.iter().map(|&i| (self.registered[i].0 as usize, self.registered[i].1 as usize)).collect();
+        self.pixel_lists(&pixels)
+    }
+
+    /// The sample lists of training pixels `(view, pixel)`, in that order:
+    /// copied from the view's cached lists (the very samples a march of the
+    /// pixel's ray gives: the view's lists are of the same rays), marched
+    /// only for views the cache does not hold.
+    fn pixel_lists(&self, pixels: &[(usize, usize)]) -> FrozenSamples {
+        let uncached: Vec<Ray> = pixels
+            .iter()
+            .filter(|&&(v, _)| self.view_samples[v].is_none())
+            .map(|&(v, p)| self.pixel_ray(v, p))
+            .collect();
+        let marched = self.march_rays(&uncached);
+        let mut lists = FrozenSamples::empty(self.march.colour_corners);
+        let mut next_marched = 0;
+        for &(v, p) in pixels {
+            match &self.view_samples[v] {
+                Some(view) => lists.push_ray_of(view, p),
+                None => {
+                    lists.push_ray_of(&marched, next_marched);
+                    next_marched += 1;
+                }
+            }
+        }
+        lists
     }
 
     /// The pseudo-ray loss's gradient on the step's rows (λ_r times the mean
