@@ -312,15 +312,8 @@ fn chunked_march_equals_one_march_and_respects_its_budget() {
     let whole = FrozenSamples::march_within(&Marcher::new(&grid), &rays, &march, 1e-5, rays.len(), usize::MAX).unwrap();
     let chunked = FrozenSamples::march_within(&Marcher::new(&grid), &rays, &march, 1e-5, 7, usize::MAX).unwrap();
     assert!(whole.num_samples() > 1000, "the camera sees the blob");
-    assert_eq!(chunked.num_rays, whole.num_rays);
-    assert_eq!(chunked.ray_offsets, whole.ray_offsets);
-    assert_eq!(chunked.ray_cells, whole.ray_cells);
-    assert_eq!(chunked.cell_rows, whole.cell_rows);
-    assert_eq!(chunked.cell_active, whole.cell_active);
-    assert_eq!(chunked.starts_cell, whole.starts_cell);
-    assert_eq!(chunked.fractions, whole.fractions);
-    assert_eq!(chunked.weight, whole.weight);
-    assert_eq!(chunked.final_transmittance, whole.final_transmittance);
+    // Every buffer equal (lists of millions of entries: no Debug dump on failure).
+    assert!(chunked == whole, "the chunked march's lists differ from one march's");
     assert!(FrozenSamples::march_within(&Marcher::new(&grid), &rays, &march, 1e-5, 7, whole.bytes()).is_some());
     assert!(FrozenSamples::march_within(&Marcher::new(&grid), &rays, &march, 1e-5, 7, whole.bytes() / 2).is_none());
 }
