@@ -14,6 +14,7 @@ use burn::tensor::{Device, Int, Tensor};
 use rand::Rng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 
 use crate::eval::metrics::psnr_from_mse;
 use crate::field::checkpoint::{self, CheckpointMeta};
@@ -939,16 +940,34 @@ impl<'a> Stylizer<'a> {
             .map(|&(v, p)| self.pixel_ray(v, p))
             .collect();
         let marched = self.march_rays(&uncached);
-        let mut lists = FrozenSamples::empty(self.march.colour_corners);
+        // Where each pixel's lists are: its view's ray, or the next marched one.
         let mut next_marched = 0;
-        for &(v, p) in pixels {
-            match &self.view_samples[v] {
-                Some(view) => lists.push_ray_of(view, p),
+        let sources: Vec<(&FrozenSamples, usize)> = pixels
+            .iter()
+            .map(|&(v, p)| match &self.view_samples[v] {
+                Some(view) => (view, p),
                 None => {
-                    lists.push_ray_of(&marched, next_marched);
                     next_marched += 1;
+                    (&marched, next_marched - 1)
                 }
-            }
+            })
+            .collect();
+        // Copied in parallel pieces (random reads across the views' lists),
+        // appended in order: the same lists as one serial copy.
+        let corners = self.march.colour_corners;
+        let pieces: Vec<FrozenSamples> = sources
+            .par_chunks(2048)
+            .map(|part| {
+                let mut piece = FrozenSamples::empty(corners);
+                for &(from, r) in part {
+                    piece.push_ray_of(from, r);
+                }
+                piece
+            })
+            .collect();
+        let mut lists = FrozenSamples::empty(self.march.colour_corners);
+        for piece in &pieces {
+            lists.append(piece);
         }
         lists
     }
