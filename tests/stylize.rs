@@ -23,7 +23,7 @@ use refnpr::stylize::field::{
     DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, render_chunks,
 };
 use refnpr::stylize::run::run_stylize;
-use refnpr::stylize::tcm::Template;
+use refnpr::stylize::tcm::{StoredFeatures, Template};
 use refnpr::stylize::{Method, StylizeJob, losses};
 use refnpr::util::tensor::{floats, to_vec};
 use refnpr::vgg::{Vgg16, VggLayer, image_tensor};
@@ -148,6 +148,31 @@ fn tcm_search_matches_brute_force() {
     let idx = Tensor::<1, Int>::from_data(TensorData::new(vec![3i32, 0], [2]), &d);
     let g = to_vec(template.guidance(0, &idx));
     assert_eq!(&g[..c], &k[3 * c..4 * c]);
+}
+
+/// The content term's stored features read back within f16's rounding
+/// (relative 2^-11) when kept as f16, exactly when f16 is not asked for or
+/// a value would not fit, and hold half the bytes as f16.
+#[test]
+fn stored_features_round_to_f16_or_stay_exact() {
+    let d = common::device();
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let values: Vec<f32> = (0..40 * 7).map(|_| rng.random::<f32>() * 3000.0 - 100.0).collect();
+    let features = floats(values.clone(), [40, 7], &d);
+    let half = StoredFeatures::store(features.clone(), true);
+    assert_eq!(half.bytes(), 40 * 7 * 2);
+    let back = half.tensor();
+    assert_eq!(back.dims(), [40, 7]);
+    for (a, b) in to_vec(back).iter().zip(&values) {
+        assert!((a - b).abs() <= b.abs() * 2f32.powi(-11), "{a} vs {b}");
+        assert_ne!(*a, f32::INFINITY);
+    }
+    let full = StoredFeatures::store(features, false);
+    assert_eq!((full.bytes(), to_vec(full.tensor())), (40 * 7 * 4, values.clone()));
+    let mut huge = values.clone();
+    huge[17] = 1e6;
+    let kept = StoredFeatures::store(floats(huge.clone(), [40, 7], &d), true);
+    assert_eq!((kept.bytes(), to_vec(kept.tensor())), (40 * 7 * 4, huge), "beyond f16's range: kept as f32");
 }
 
 /// A random grid with a blob of density in the middle and random DC colour.

@@ -293,6 +293,9 @@ pub struct StylizeConfig {
     pub samples_on_device: Placement,
     /// What computes the ray losses (`RayKernel`).
     pub ray_kernel: RayKernel,
+    /// On the CPU backends, keep the content term's fixed features as f16
+    /// numbers (half their memory; `tcm::StoredFeatures`). No effect on a GPU.
+    pub half_content_features: bool,
     /// Rays per chunk in rendering and the deferred re-render.
     pub render_chunk: usize,
     /// Query rows per chunk in the nearest-neighbour searches.
@@ -314,6 +317,7 @@ impl Default for StylizeConfig {
             sample_cache_mb: 2048,
             samples_on_device: Placement::Auto,
             ray_kernel: RayKernel::Auto,
+            half_content_features: true,
             render_chunk: 16384,
             search_chunk: 1024,
         }

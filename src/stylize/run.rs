@@ -240,7 +240,14 @@ fn preflight(job: &StylizeJob, ck: &Checkpoint, dataset: &Dataset) -> Result<[us
         );
     }
     let grid_bytes = ck.grid.num_rows() as u64 * 3 * 4 * 6; // SH, RMSprop state, gradients
-    let per_view = feature_cache_bytes(job.method, 1, width, height, keeps_content(job));
+    // Bytes per kept content feature: f16 with `half_content_features` (on
+    // the CPU backends, whose memory this checks).
+    let content_bytes = match (keeps_content(job), job.config.half_content_features) {
+        (false, _) => 0,
+        (true, true) => 2,
+        (true, false) => 4,
+    };
+    let per_view = feature_cache_bytes(job.method, 1, width, height, content_bytes);
     let need = per_view * dataset.train.len() as u64 + grid_bytes;
     if let Some(avail) = available_memory_bytes()
         && need > avail / 4 * 3
@@ -311,8 +318,8 @@ fn save_outputs(st: &Stylizer, photo_meta: &checkpoint::CheckpointMeta, started:
 }
 
 /// Bytes the per-view feature caches need (raw content features of the
-/// feature blocks, when kept, plus match indices).
-fn feature_cache_bytes(method: Method, views: usize, width: usize, height: usize, keep_content: bool) -> u64 {
+/// feature blocks, `content_bytes` a number, plus match indices).
+fn feature_cache_bytes(method: Method, views: usize, width: usize, height: usize, content_bytes: usize) -> u64 {
     let blocks: Vec<&[VggLayer]> = match method {
         Method::RefNpr => FEATURE_BLOCKS.to_vec(),
         Method::Arf => vec![&RELU3],
@@ -322,7 +329,7 @@ fn feature_cache_bytes(method: Method, views: usize, width: usize, height: usize
         .map(|b| {
             let [h, w] = tcm::block_size(b, height, width);
             let c: usize = b.iter().map(|l| l.channels()).sum();
-            h * w * (if keep_content { c * 4 } else { 0 } + 8)
+            h * w * (c * content_bytes + 8)
         })
         .sum();
     (per_view * views) as u64

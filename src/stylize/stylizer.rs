@@ -35,7 +35,7 @@ use crate::stylize::field::{
 use crate::stylize::losses;
 use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::styles::{colour_stats, is_background};
-use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, Template};
+use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, StoredFeatures, Template};
 use crate::stylize::{CurvePoint, Method, SampleCacheReport, StepKind, StylizeJob};
 use crate::util::diverged;
 use crate::util::image::Image;
@@ -93,7 +93,7 @@ impl RaySet<'_> {
 /// Per-view data kept for the image epochs.
 pub struct ViewGuide {
     /// Raw content features per block (for λ'; empty when unused).
-    content: Vec<Tensor<2>>,
+    content: Vec<StoredFeatures>,
     /// TCM matches per block (Ref-NPR).
     matches: Vec<Tensor<1, Int>>,
     colour: Option<ColourTargets>,
@@ -1124,7 +1124,7 @@ impl<'a> Stylizer<'a> {
                         accumulate(&mut parts.feature, &style);
                         total = total + style * weight;
                         if content_weight > 0.0 && b < guide.content.len() {
-                            let c = losses::content_loss(r, guide.content[b].clone());
+                            let c = losses::content_loss(r, guide.content[b].tensor());
                             accumulate(&mut parts.content, &c);
                             total = total + c * (weight * content_weight);
                         }
@@ -1154,7 +1154,7 @@ impl<'a> Stylizer<'a> {
                 accumulate(&mut parts.feature, &nnfm);
                 total = total + nnfm * a.nnfm;
                 if let (true, Some(content)) = (a.content > 0.0, guide.content.first()) {
-                    let c = losses::content_loss(render, content.clone());
+                    let c = losses::content_loss(render, content.tensor());
                     accumulate(&mut parts.content, &c);
                     total = total + c * a.content;
                 }
@@ -1181,6 +1181,7 @@ impl<'a> Stylizer<'a> {
         let mut out = Vec::with_capacity(n);
         let mut matched = 0.0;
         let half = self.job.method == Method::Arf && self.cfg.arf.half_resolution;
+        let half_content = self.cfg.half_content_features && is_host_memory(&self.device);
         for v in 0..n {
             let content = self.render_view(v);
             let halved;
@@ -1202,7 +1203,12 @@ impl<'a> Stylizer<'a> {
                 }
                 _ => None,
             };
-            out.push(ViewGuide { content: if keep_content { raw } else { Vec::new() }, matches, colour });
+            let content = if keep_content {
+                raw.into_iter().map(|features| StoredFeatures::store(features, half_content)).collect()
+            } else {
+                Vec::new()
+            };
+            out.push(ViewGuide { content, matches, colour });
             progress.event(Event::Step { phase: Phase::Guides, done: v + 1, total: n, message: String::new() });
         }
         Ok((out, matched))
