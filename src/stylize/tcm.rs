@@ -62,7 +62,11 @@ pub fn image_features(
 pub enum StoredFeatures {
     /// (Boxed: a tensor handle is several times the size of the other variant.)
     Tensor(Box<Tensor<2>>),
-    Half { values: Vec<f16>, shape: [usize; 2], device: Device },
+    Half {
+        values: Vec<f16>,
+        shape: [usize; 2],
+        device: Device,
+    },
 }
 
 impl StoredFeatures {
