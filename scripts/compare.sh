@@ -7,7 +7,8 @@
 # without L_feat / without L_color / without the smooth update. Reference:
 # training view 0 (procedural: the stylized twin's view, an exact repaint;
 # real scenes: `refnpr paint` over the content render). Existing runs in OUT
-# are reused, so an interrupted comparison resumes. EPOCHS=N shortens every
+# are reused, so an interrupted comparison resumes (a row killed midway
+# from its resume.bin). EPOCHS=N shortens every
 # stylization; BACKEND picks the backend (default flex); ROWS="refnpr arf"
 # runs a subset; SIZE=192 renders the procedural scene at 192x192 (default
 # 96); BIN=path uses that binary instead of building one (a copy
@@ -60,6 +61,8 @@ for row in "${rows[@]}"; do
       arf) extra=(--method arf) ;;
       *) extra=(--config "configs/ablations/$row.toml") ;;
     esac
+    # A row killed midway continues from its resume.bin.
+    [ -f "$run/resume.bin" ] && extra+=(--resume)
     echo "== $row" >&2
     $bin stylize --photo "$out/photo" --reference "$out/case" --out "$run" --backend "$backend" --no-render "${extra[@]}" "${epochs[@]}"
   fi
