@@ -151,8 +151,9 @@ fn tcm_search_matches_brute_force() {
 }
 
 /// The content term's stored features read back within f16's rounding
-/// (relative 2^-11) when kept as f16, exactly when f16 is not asked for or
-/// a value would not fit, and hold half the bytes as f16.
+/// (relative 2^-11: these values lie in f16's normal range) when kept as
+/// f16, exactly when f16 is not asked for or a value would not fit, and
+/// hold half the bytes as f16.
 #[test]
 fn stored_features_round_to_f16_or_stay_exact() {
     let d = common::device();

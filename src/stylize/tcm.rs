@@ -56,8 +56,9 @@ pub fn image_features(
 /// per block and view). On the CPU backends they are kept as f16 numbers
 /// when every value fits (issue 19: lego's 100 views held 1.15 GB of them
 /// as f32, fern's 17 views 0.9 GB) and widened to f32 when used: a
-/// relative rounding of at most 2^-11 on a target of the content term (a
-/// 5e-3 share of the feature loss). On a GPU they stay f32 tensors on the
+/// rounding of at most 2^-11 of each value (below f16's smallest normal
+/// number, 6.1e-5, at most 3e-8 absolute) on a target of the content term
+/// (a 5e-3 share of the feature loss). On a GPU they stay f32 tensors on the
 /// device (no per-step upload).
 pub enum StoredFeatures {
     /// (Boxed: a tensor handle is several times the size of the other variant.)
