@@ -296,6 +296,35 @@ fn depth_march_with_block_skipping_equals_the_renderer() {
     assert_eq!(fast, tdepth);
 }
 
+/// A view is rendered in square tiles on the CPU backends (cache reuse
+/// between neighbouring rays); every ray is still rendered on its own, so
+/// the view equals its rays rendered in pixel order, to the bit, with the
+/// image's edges cutting tiles short.
+#[test]
+fn a_view_rendered_in_tiles_equals_its_rays_in_pixel_order() {
+    for (w, h) in [(37, 21), (16, 16), (5, 40)] {
+        let order = render::tile_order(w, h, 16);
+        let mut sorted = order.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..w * h).collect::<Vec<_>>(), "{w}x{h}: a permutation of the pixels");
+    }
+    let grid = refnpr::field::grid::sphere_grid(32, &common::device());
+    let cam = Camera::new(
+        Intrinsics::from_fov_x(37, 21, 0.9),
+        refnpr::scene::camera::look_at(Vec3::new(2.2, 1.0, 0.8), Vec3::ZERO, Vec3::Z),
+    );
+    let renderer = render::ViewRenderer::new(&grid, None, &MarchParams::default(), [0.2, 0.5, 0.9], 4096);
+    let view = renderer.view(&cam);
+    let rays = renderer.rays(&cam.rays(None));
+    let hits = rays.threshold_depth.iter().filter(|d| d.is_some()).count();
+    assert!(hits > 50 && hits < 37 * 21, "the sphere covers part of the view: {hits}");
+    let clamped: Vec<f32> = rays.rgb.iter().map(|v| v.clamp(0.0, 1.0)).collect();
+    assert_eq!(view.image.rgb, clamped);
+    assert_eq!(view.expected_depth, rays.expected_depth);
+    assert_eq!(view.threshold_depth, rays.threshold_depth);
+    assert_eq!(view.opacity, rays.opacity);
+}
+
 /// Gathers and scatters of more than 65535 rows (every renderer and
 /// optimiser step has them) are exact: Burn 0.22.1's wgpu `select_assign`,
 /// also `select`'s backward, drops indices beyond 65535, which

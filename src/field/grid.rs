@@ -54,6 +54,7 @@ impl GridGeometry {
 
     /// Continuous lattice coordinates: lattice point i sits at the centre of
     /// voxel i, so coordinate 0 is half a voxel inside the box.
+    #[inline]
     pub fn world_to_grid(&self, p: Vec3) -> Vec3 {
         (p - self.bbox_min) / self.voxel_size() - Vec3::splat(0.5)
     }
@@ -106,6 +107,16 @@ impl GridGeometry {
             (base[1] + dy).min(self.res[1] - 1),
             (base[2] + dz).min(self.res[2] - 1),
         )
+    }
+
+    /// What `corner_index(base, c)` adds to the base's own flat index, for
+    /// every `base` that `trilinear_base` gives (its indices stay below
+    /// `res - 1` on axes longer than one point; on a one-point axis the
+    /// `+1` corner is clamped back onto the base).
+    pub fn corner_offsets(&self) -> [usize; 8] {
+        let stride = [self.res[1] * self.res[2], self.res[2], 1];
+        let step = |axis: usize, bit: usize| if bit == 1 && self.res[axis] > 1 { stride[axis] } else { 0 };
+        std::array::from_fn(|c| step(0, (c >> 2) & 1) + step(1, (c >> 1) & 1) + step(2, c & 1))
     }
 
     /// The trilinear weights of the 8 corners of the cell at `base`
@@ -456,6 +467,29 @@ pub fn sphere_grid(res: usize, device: &Device) -> RadianceGrid {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The flat base index plus `corner_offsets` is `corner_index` for
+    /// every cell base `trilinear_base` gives, one-point axes included.
+    #[test]
+    fn corner_offsets_match_corner_index() {
+        for res in [[4, 5, 6], [1, 3, 2], [3, 1, 1], [2, 2, 2]] {
+            let geo = GridGeometry::new(res, Vec3::splat(-1.0), Vec3::splat(1.0));
+            let offsets = geo.corner_offsets();
+            let mut bases = std::collections::BTreeSet::new();
+            for step in 0..=40 {
+                let x = step as f32 / 40.0;
+                let g = Vec3::new(x * res[0] as f32, (1.0 - x) * res[1] as f32, x * x * res[2] as f32) - 0.5;
+                bases.insert(geo.trilinear_base(g));
+            }
+            assert!(bases.len() > 1 || res.iter().all(|&r| r <= 2), "{res:?}: {bases:?}");
+            for base in bases {
+                let flat = geo.flat(base[0], base[1], base[2]);
+                for (c, offset) in offsets.iter().enumerate() {
+                    assert_eq!(flat + offset, geo.corner_index(base, c), "res {res:?} base {base:?} corner {c}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn trilinear_weights_sum_to_one_and_hit_lattice_points() {

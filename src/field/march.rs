@@ -109,82 +109,91 @@ pub struct MarchSample {
     pub sigma: f32,
 }
 
-/// The 8 lattice corners around a point: their rows (-1 = empty), where
-/// the point lies in the cell, its trilinear weights, the first active
-/// row, the interpolated density (empty = 0) and which corners are active.
-struct Corners {
-    rows: [i32; 8],
-    fractions: [f32; 3],
-    w: [f32; 8],
-    first_active: i32,
-    sigma: f32,
-    active: u8,
-}
-
 /// The weights a sample's colour is interpolated with, from its trilinear
 /// weights `w` and which corners are `active` (bit `c`): inactive corners
 /// get 0; the active ones are renormalised to sum to 1 or kept as they are
 /// (`ColourCorners`). One definition for the march and for sample lists
-/// that keep only the fractions and the bits (`FrozenSamples`).
+/// that keep only the fractions and the bits (`FrozenSamples`). Written
+/// with selects, not branches: which corners are active changes from cell
+/// to cell without a pattern a branch predictor could learn.
 #[inline]
 pub fn colour_weights(w: &[f32; 8], active: u8, corners: ColourCorners) -> [f32; 8] {
+    let masked: [f32; 8] = std::array::from_fn(|c| if active & (1 << c) != 0 { w[c] } else { 0.0 });
     let sum = match corners {
-        ColourCorners::Renormalised => {
-            let mut sum = 0.0f32;
-            for (c, &wc) in w.iter().enumerate() {
-                if active & (1 << c) != 0 {
-                    sum += wc;
-                }
-            }
-            sum
-        }
+        // Adding an inactive corner's +0.0 leaves the sum's bits as they are.
+        ColourCorners::Renormalised => masked.iter().fold(0.0f32, |sum, &wc| sum + wc),
         ColourCorners::Zero => 1.0,
     };
-    std::array::from_fn(|c| if active & (1 << c) != 0 { w[c] / sum } else { 0.0 })
+    std::array::from_fn(|c| if active & (1 << c) != 0 { masked[c] / sum } else { 0.0 })
 }
 
 /// The lattice rows and densities of the cell a ray sampled last:
 /// consecutive samples, half a voxel apart, mostly fall in one cell, and
-/// its 8 lattice and density reads (random reads, the march's main cost)
+/// its 8 lattice and density reads (random reads) and what follows from
+/// them (which corners are active, the rows an empty corner points at)
 /// are then done once for the cell, not per sample.
 struct LastCell {
-    base: [usize; 3],
+    /// The flat lattice index of the cell's base (compared as one number:
+    /// comparing the three indices as an array went through memory).
+    key: usize,
+    /// The corners' rows, an empty corner pointing at the first active row
+    /// (as a sample's rows do; all -1 when none is active).
     rows: [i32; 8],
-    /// The density of each active corner (0 for empty ones, never read).
+    /// The density of each corner, 0 for an empty one.
     density: [f32; 8],
+    /// Which corners are active: bit `c` for corner `c`.
+    active: u8,
 }
 
 impl LastCell {
     fn new() -> Self {
-        Self { base: [usize::MAX; 3], rows: [-1; 8], density: [0.0; 8] }
+        Self { key: usize::MAX, rows: [-1; 8], density: [0.0; 8], active: 0 }
+    }
+
+    /// Reads the cell at `base` unless it is the one held. Selects, not
+    /// branches, on whether a corner is empty (about a third of fern's
+    /// lattice points are, in no pattern).
+    #[inline(always)]
+    fn load(&mut self, grid: &RadianceGrid, corner_offsets: &[usize; 8], base: [usize; 3]) {
+        let key = grid.geometry.flat(base[0], base[1], base[2]);
+        if self.key == key {
+            return;
+        }
+        self.key = key;
+        let raw: [i32; 8] = std::array::from_fn(|c| grid.links[key + corner_offsets[c]]);
+        self.active = raw.iter().enumerate().fold(0u8, |bits, (c, &r)| bits | (u8::from(r >= 0) << c));
+        if self.active == 0 {
+            self.rows = [-1; 8];
+            return;
+        }
+        let first = raw[self.active.trailing_zeros() as usize];
+        for ((&r, density), row) in raw.iter().zip(&mut self.density).zip(&mut self.rows) {
+            let value = grid.density_cpu[r.max(first) as usize];
+            *density = if r >= 0 { value } else { 0.0 };
+            *row = if r >= 0 { r } else { first };
+        }
     }
 }
 
-fn corners(grid: &RadianceGrid, pos: glam::Vec3, cell: &mut LastCell) -> Corners {
-    let geo = &grid.geometry;
-    let g = geo.world_to_grid(pos);
-    let base = geo.trilinear_base(g);
-    if cell.base != base {
-        cell.base = base;
-        for c in 0..8 {
-            let r = grid.links[geo.corner_index(base, c)];
-            cell.rows[c] = r;
-            cell.density[c] = if r >= 0 { grid.density_cpu[r as usize] } else { 0.0 };
-        }
-    }
-    let fractions = geo.trilinear_fractions(g, base);
+/// A position's lattice point (`world_to_grid`'s arithmetic with the voxel
+/// size computed once, `voxel`: the same bits without its two divisions
+/// per sample) and the base of its cell (`trilinear_base`).
+#[inline(always)]
+fn lattice_point(grid: &RadianceGrid, voxel: glam::Vec3, pos: glam::Vec3) -> (glam::Vec3, [usize; 3]) {
+    let g = (pos - grid.geometry.bbox_min) / voxel - glam::Vec3::splat(0.5);
+    (g, grid.geometry.trilinear_base(g))
+}
+
+/// The sample of the held cell at lattice point `g`: where it lies in the
+/// cell, its trilinear weights (empty corners: 0) and its interpolated
+/// density (empty corners count as zero; adding their +0.0 products in
+/// corner order gives the bits of a sum over the active corners only).
+#[inline(always)]
+fn cell_sample(grid: &RadianceGrid, g: glam::Vec3, base: [usize; 3], cell: &LastCell) -> ([f32; 3], [f32; 8], f32) {
+    let fractions = grid.geometry.trilinear_fractions(g, base);
     let w = weights_of_fractions(fractions);
-    let mut out = Corners { rows: cell.rows, fractions, w, first_active: -1, sigma: 0.0, active: 0 };
-    for (c, ((&r, &w), &density)) in cell.rows.iter().zip(&w).zip(&cell.density).enumerate() {
-        if r >= 0 {
-            if out.first_active < 0 {
-                out.first_active = r;
-            }
-            out.sigma += w * density;
-            out.active |= 1 << c;
-        }
-    }
-    out
+    let sigma = w.iter().zip(&cell.density).fold(0.0f32, |sigma, (&w, &density)| sigma + w * density);
+    (fractions, w, sigma)
 }
 
 /// Equation 4 at sub-sample precision: the sample at `t` stands for the
@@ -259,17 +268,26 @@ impl BlockOccupancy {
 pub struct Marcher<'a> {
     grid: &'a RadianceGrid,
     occupancy: std::borrow::Cow<'a, BlockOccupancy>,
+    /// `GridGeometry::corner_offsets` of the grid.
+    corner_offsets: [usize; 8],
+    /// `GridGeometry::voxel_size` of the grid.
+    voxel: glam::Vec3,
 }
 
 impl<'a> Marcher<'a> {
     pub fn new(grid: &'a RadianceGrid) -> Self {
-        Self { grid, occupancy: std::borrow::Cow::Owned(BlockOccupancy::of(grid)) }
+        Self::on(grid, std::borrow::Cow::Owned(BlockOccupancy::of(grid)))
     }
 
     /// A marcher on an occupancy built earlier for this very grid state.
     pub fn with_occupancy(grid: &'a RadianceGrid, occupancy: &'a BlockOccupancy) -> Self {
         assert!(occupancy.matches(grid), "block occupancy built for another grid state");
-        Self { grid, occupancy: std::borrow::Cow::Borrowed(occupancy) }
+        Self::on(grid, std::borrow::Cow::Borrowed(occupancy))
+    }
+
+    fn on(grid: &'a RadianceGrid, occupancy: std::borrow::Cow<'a, BlockOccupancy>) -> Self {
+        let (corner_offsets, voxel) = (grid.geometry.corner_offsets(), grid.geometry.voxel_size());
+        Self { grid, occupancy, corner_offsets, voxel }
     }
 
     /// The grid this marches through.
@@ -277,14 +295,30 @@ impl<'a> Marcher<'a> {
         self.grid
     }
 
-    /// When sample `k` (at `t`) lies in an empty block: the index of the
-    /// first sample at or after the ray's exit from that block.
-    fn skip_empty(&self, a: glam::Vec3, d: glam::Vec3, t0: f32, step: f32, t: f32, k: usize) -> Option<usize> {
-        let b = self.grid.geometry.trilinear_base(a + t * d).map(|v| v / BLOCK);
+    /// When sample `k`, whose cell's base is `base`, lies in an empty
+    /// block: the index of the first sample at or after the ray's exit from
+    /// that block (the ray in lattice coordinates is `a + t d`, its first
+    /// sample at `t0 + step / 2`).
+    #[inline(always)]
+    fn skip_empty(
+        &self,
+        base: [usize; 3],
+        a: glam::Vec3,
+        d: glam::Vec3,
+        t0: f32,
+        step: f32,
+        k: usize,
+    ) -> Option<usize> {
+        let b = base.map(|v| v / BLOCK);
         let occ = &*self.occupancy;
         if occ.occupied[(b[0] * occ.blocks[1] + b[1]) * occ.blocks[2] + b[2]] {
             return None;
         }
+        Some(self.block_exit(b, a, d, t0, step, k))
+    }
+
+    /// The index of the first sample at or after the ray's exit from block `b`.
+    fn block_exit(&self, b: [usize; 3], a: glam::Vec3, d: glam::Vec3, t0: f32, step: f32, k: usize) -> usize {
         let mut exit = f32::INFINITY;
         for ax in 0..3 {
             let bound = if d[ax] > 0.0 {
@@ -297,7 +331,7 @@ impl<'a> Marcher<'a> {
             exit = exit.min((bound - a[ax]) / d[ax]);
         }
         let next = ((exit - t0) / step - 0.5 - 1e-3).ceil();
-        Some(if next.is_finite() && next > k as f32 { next as usize } else { k + 1 })
+        if next.is_finite() && next > k as f32 { next as usize } else { k + 1 }
     }
 
     /// Equation-4 depth of every ray (None = miss), in parallel, without
@@ -323,19 +357,24 @@ impl<'a> Marcher<'a> {
             if t >= t1 {
                 return None;
             }
-            if let Some(next) = self.skip_empty(a, d, t0, step, t, k) {
+            let (g, base) = lattice_point(grid, self.voxel, ray.origin + t * ray.dir);
+            if let Some(next) = self.skip_empty(base, a, d, t0, step, k) {
                 k = next;
                 continue;
             }
-            let c = corners(grid, ray.origin + t * ray.dir, &mut cell);
-            if c.first_active >= 0 && c.sigma > p.sigma_threshold {
+            k += 1;
+            cell.load(grid, &self.corner_offsets, base);
+            if cell.active == 0 {
+                continue;
+            }
+            let (_, _, sigma) = cell_sample(grid, g, base, &cell);
+            if sigma > p.sigma_threshold {
                 let before = optical;
-                optical += c.sigma * step;
+                optical += sigma * step;
                 if optical >= p.depth_threshold {
-                    return Some(threshold_crossing(t, step, before, c.sigma, p.depth_threshold));
+                    return Some(threshold_crossing(t, step, before, sigma, p.depth_threshold));
                 }
             }
-            k += 1;
         }
     }
 
@@ -415,17 +454,22 @@ impl<'a> Marcher<'a> {
             if t >= t1 {
                 break;
             }
-            if let Some(next) = self.skip_empty(a, d, t0, step, t, k) {
+            let (g, base) = lattice_point(grid, self.voxel, ray.origin + t * ray.dir);
+            if let Some(next) = self.skip_empty(base, a, d, t0, step, k) {
                 k = next;
                 continue;
             }
             k += 1;
-            let Corners { rows, fractions, w, first_active, sigma, active } =
-                corners(grid, ray.origin + t * ray.dir, &mut cell);
-            if first_active >= 0 && sigma > p.sigma_threshold {
-                let mut sample = MarchSample {
-                    rows,
-                    weights: w,
+            cell.load(grid, &self.corner_offsets, base);
+            if cell.active == 0 {
+                continue;
+            }
+            let (fractions, w, sigma) = cell_sample(grid, g, base, &cell);
+            if sigma > p.sigma_threshold {
+                let active = cell.active;
+                let sample = MarchSample {
+                    rows: cell.rows,
+                    weights: std::array::from_fn(|c| if active & (1 << c) != 0 { w[c] } else { 0.0 }),
                     colour_weights: colour_weights(&w, active, p.colour_corners),
                     fractions,
                     active,
@@ -433,12 +477,6 @@ impl<'a> Marcher<'a> {
                     delta: step,
                     sigma,
                 };
-                for (c, &row) in rows.iter().enumerate() {
-                    if row < 0 {
-                        sample.rows[c] = first_active;
-                        sample.weights[c] = 0.0;
-                    }
-                }
                 visit(&sample);
                 let before = optical;
                 optical += sigma * step;
