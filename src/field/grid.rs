@@ -56,7 +56,14 @@ impl GridGeometry {
     /// voxel i, so coordinate 0 is half a voxel inside the box.
     #[inline]
     pub fn world_to_grid(&self, p: Vec3) -> Vec3 {
-        (p - self.bbox_min) / self.voxel_size() - Vec3::splat(0.5)
+        self.world_to_grid_in(p, self.voxel_size())
+    }
+
+    /// `world_to_grid` with `voxel_size()` computed once by the caller (a
+    /// march of millions of samples): the same arithmetic, the same bits.
+    #[inline(always)]
+    pub fn world_to_grid_in(&self, p: Vec3, voxel_size: Vec3) -> Vec3 {
+        (p - self.bbox_min) / voxel_size - Vec3::splat(0.5)
     }
 
     pub fn grid_to_world(&self, g: Vec3) -> Vec3 {

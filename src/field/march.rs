@@ -175,12 +175,12 @@ impl LastCell {
     }
 }
 
-/// A position's lattice point (`world_to_grid`'s arithmetic with the voxel
-/// size computed once, `voxel`: the same bits without its two divisions
-/// per sample) and the base of its cell (`trilinear_base`).
+/// A position's lattice point (`world_to_grid_in` with the voxel size the
+/// marcher computed once: no two divisions per sample for it) and the base
+/// of its cell (`trilinear_base`).
 #[inline(always)]
 fn lattice_point(grid: &RadianceGrid, voxel: glam::Vec3, pos: glam::Vec3) -> (glam::Vec3, [usize; 3]) {
-    let g = (pos - grid.geometry.bbox_min) / voxel - glam::Vec3::splat(0.5);
+    let g = grid.geometry.world_to_grid_in(pos, voxel);
     (g, grid.geometry.trilinear_base(g))
 }
 
