@@ -279,10 +279,14 @@ pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<St
     }
     let path = dataset.render_path(case.path_frames);
     progress.info(format!("rendering {} path frames of {}", path.len(), job.run.display()));
+    let started = std::time::Instant::now();
     let renderer = ck.renderer();
     let frames: Vec<SurfaceRender> = path.iter().map(|c| surface_of(&renderer, c)).collect();
     drop(renderer);
+    progress.info(format!("rendered the path in {:.1} s", started.elapsed().as_secs_f64()));
+    let started = std::time::Instant::now();
     let (ref_lpips, ref_lpips_frames) = ref_lpips(&ck, &dataset, &case, &frames)?;
+    progress.info(format!("ref_lpips in {:.1} s", started.elapsed().as_secs_f64()));
     let truth = match &job.gt {
         Some(gt) => Some(ground_truth_psnrs(&ck, &dataset, &case, gt)?),
         None => None,
@@ -301,6 +305,10 @@ pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<St
     } else {
         Some(robustness(job, &ck, &frames, &robustness_frames, case.path_frames, progress)?)
     };
+    let started = std::time::Instant::now();
+    let stability = stability(&frames, tolerance(&ck));
+    let speckle = speckle_fraction(frames.iter().map(|f| speckle_of(f, &f.image.rgb)).fold((0, 0), add_counts));
+    progress.info(format!("stability and speckle in {:.1} s", started.elapsed().as_secs_f64()));
     Ok(StylizationEval {
         run: job.run.clone(),
         reference: job.case.clone(),
@@ -310,8 +318,8 @@ pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<St
         gt_psnr: truth.map(|t| t.all),
         gt_psnr_occluded: truth.and_then(|t| t.occluded),
         occluded_fraction: truth.map(|t| t.occluded_fraction),
-        stability: stability(&frames, tolerance(&ck)),
-        speckle: speckle_fraction(frames.iter().map(|f| speckle_of(f, &f.image.rgb)).fold((0, 0), add_counts)),
+        stability,
+        speckle,
         speckle_test: truth.map(|t| t.speckle),
         gt_speckle: truth.map(|t| t.gt_speckle),
         robustness_psnr,
@@ -338,8 +346,11 @@ fn ref_lpips(
         let (w, h) = (path[0].intrinsics.width, path[0].intrinsics.height);
         let (style, _) = case::read_style(&spec.style, w, h, ck.meta.background)?;
         let style = Image::new(w as usize, h as usize, style);
+        // The style's features once, not once per frame (`perceptual_distance`'s arithmetic).
+        let style_features = vgg.features(style.tensor(&device), &LPIPS_LAYERS)?;
         for &i in &near {
-            distances.push(perceptual_distance(&vgg, &style, &frames[i].image, &device)?);
+            let frame_features = vgg.features(frames[i].image.tensor(&device), &LPIPS_LAYERS)?;
+            distances.push(normalised_feature_distance(&style_features, &frame_features, &LPIPS_LAYERS));
         }
         used.push(near);
     }

@@ -143,11 +143,23 @@ struct LastCell {
     density: [f32; 8],
     /// Which corners are active: bit `c` for corner `c`.
     active: u8,
+    /// Whether a corner has positive density. When none has, every sample
+    /// in the cell has density <= 0 (non-negative trilinear weights times
+    /// non-positive densities), below any non-negative `sigma_threshold`.
+    alive: bool,
 }
 
 impl LastCell {
     fn new() -> Self {
-        Self { key: usize::MAX, rows: [-1; 8], density: [0.0; 8], active: 0 }
+        Self { key: usize::MAX, rows: [-1; 8], density: [0.0; 8], active: 0, alive: false }
+    }
+
+    /// Whether a sample in the held cell may have a density above the
+    /// threshold: no when the cell has no active corner, nor, with
+    /// `skip_dead`, a corner of positive density.
+    #[inline(always)]
+    fn may_emit(&self, skip_dead: bool) -> bool {
+        self.active != 0 && (self.alive || !skip_dead)
     }
 
     /// Reads the cell at `base` unless it is the one held. Selects, not
@@ -164,6 +176,7 @@ impl LastCell {
         self.active = raw.iter().enumerate().fold(0u8, |bits, (c, &r)| bits | (u8::from(r >= 0) << c));
         if self.active == 0 {
             self.rows = [-1; 8];
+            self.alive = false;
             return;
         }
         let first = raw[self.active.trailing_zeros() as usize];
@@ -172,6 +185,7 @@ impl LastCell {
             *density = if r >= 0 { value } else { 0.0 };
             *row = if r >= 0 { r } else { first };
         }
+        self.alive = self.density.iter().fold(false, |alive, &d| alive | (d > 0.0));
     }
 }
 
@@ -212,47 +226,121 @@ fn ray_step(grid: &RadianceGrid, ray: &Ray, p: &MarchParams) -> f32 {
     p.step / (ray.dir / grid.geometry.voxel_size()).length()
 }
 
-/// Which 8³ blocks of the lattice are empty: a block is empty when no
-/// lattice point of its 9³ closure is active, so every sample whose
+/// Which 4³ blocks of the lattice are empty: a block is empty when no
+/// lattice point of its 5³ closure is active, so every sample whose
 /// trilinear base lies in it has 8 empty corners and would be dropped
-/// anyway. It depends only on which rows exist, so it stays valid until the
-/// grid is pruned or upsampled: a training run builds it once per grid
+/// anyway. That depends only on which rows exist, so it stays valid until
+/// the grid is pruned or upsampled: a training run builds it once per grid
 /// (building costs O(active points), millions on real scenes).
+///
+/// Built `with_density`, it also knows which blocks are dead: no point of
+/// the closure has positive density, so every sample there has density <= 0
+/// and is dropped by any non-negative `sigma_threshold`. That holds only
+/// while the densities stay as they are: rendering a checkpoint, R³, a
+/// stylization (density frozen), not a photoreal fit. Most of fern's
+/// lattice is active (its points are pruned by a threshold, not removed),
+/// so only 0.3 % of its path render's positions lie in empty 8³ blocks but
+/// 30 % in dead 4³ ones (16 % in dead 8³ ones).
 #[derive(Debug, Clone)]
 pub struct BlockOccupancy {
     res: [usize; 3],
     num_rows: usize,
     blocks: [usize; 3],
     occupied: Vec<bool>,
+    /// Blocks with a point of positive density (`with_density`).
+    alive: Option<Vec<bool>>,
 }
 
-const BLOCK: usize = 8;
+/// Block edge in lattice cells: 4 skips twice as many of fern's positions
+/// as 8 (dead space comes in smaller pieces than empty space).
+const BLOCK: usize = 4;
+
+/// A ray in lattice coordinates, `a + t d`, and its samples, the first at
+/// `t0 + step / 2`.
+struct LatticeRay {
+    a: glam::Vec3,
+    d: glam::Vec3,
+    t0: f32,
+    step: f32,
+}
+
+impl LatticeRay {
+    fn new(grid: &RadianceGrid, ray: &Ray, t0: f32, step: f32) -> Self {
+        let geo = &grid.geometry;
+        Self { a: geo.world_to_grid(ray.origin), d: ray.dir / geo.voxel_size(), t0, step }
+    }
+
+    /// The index of the first sample at or after the ray's exit from block
+    /// `b`, sample `k` being inside it (a little before the exit when
+    /// rounding is close: the march then looks at that sample again).
+    fn block_exit(&self, b: [usize; 3], k: usize) -> usize {
+        let mut exit = f32::INFINITY;
+        for (ax, &block) in b.iter().enumerate() {
+            let bound = if self.d[ax] > 0.0 {
+                ((block + 1) * BLOCK) as f32
+            } else if self.d[ax] < 0.0 {
+                (block * BLOCK) as f32
+            } else {
+                continue;
+            };
+            exit = exit.min((bound - self.a[ax]) / self.d[ax]);
+        }
+        let next = ((exit - self.t0) / self.step - 0.5 - 1e-3).ceil();
+        if next.is_finite() && next > k as f32 { next as usize } else { k + 1 }
+    }
+}
 
 /// Rays marched per rayon task by `Marcher::samples`.
 const RAYS_PER_TASK: usize = 256;
 
 impl BlockOccupancy {
+    /// The empty blocks of `grid`'s rows (valid across density updates).
     pub fn of(grid: &RadianceGrid) -> Self {
+        Self::build(grid, false)
+    }
+
+    /// The empty and the dead blocks of `grid` as its densities are now.
+    pub fn with_density(grid: &RadianceGrid) -> Self {
+        Self::build(grid, true)
+    }
+
+    fn build(grid: &RadianceGrid, density: bool) -> Self {
         let geo = &grid.geometry;
         let blocks = geo.res.map(|r| r.div_ceil(BLOCK).max(1));
         let mut occupied = vec![false; blocks[0] * blocks[1] * blocks[2]];
+        let mut alive = vec![false; if density { occupied.len() } else { 0 }];
         // The blocks whose closed range [b*B, b*B+B] holds lattice index i.
         let owners = |i: usize, n: usize| {
             let b = (i / BLOCK).min(n - 1);
             let below = (i.is_multiple_of(BLOCK) && i > 0).then(|| i / BLOCK - 1);
             [Some(b), below]
         };
-        for &flat in &grid.coords {
+        for (row, &flat) in grid.coords.iter().enumerate() {
             let [i, j, k] = geo.unflat(flat as usize);
+            let positive = density && grid.density_cpu[row] > 0.0;
             for bi in owners(i, blocks[0]).into_iter().flatten() {
                 for bj in owners(j, blocks[1]).into_iter().flatten() {
                     for bk in owners(k, blocks[2]).into_iter().flatten() {
-                        occupied[(bi * blocks[1] + bj) * blocks[2] + bk] = true;
+                        let b = (bi * blocks[1] + bj) * blocks[2] + bk;
+                        occupied[b] = true;
+                        if positive {
+                            alive[b] = true;
+                        }
                     }
                 }
             }
         }
-        Self { res: geo.res, num_rows: grid.num_rows(), blocks, occupied }
+        Self { res: geo.res, num_rows: grid.num_rows(), blocks, occupied, alive: density.then_some(alive) }
+    }
+
+    /// The blocks a march with `params` must visit: the live ones when
+    /// known and the threshold drops non-positive densities, else the
+    /// occupied ones. Also says whether dead cells may be skipped.
+    fn to_visit(&self, params: &MarchParams) -> (&[bool], bool) {
+        match &self.alive {
+            Some(alive) if params.sigma_threshold >= 0.0 => (alive, true),
+            _ => (&self.occupied, false),
+        }
     }
 
     /// Whether this was plausibly built for `grid` (same lattice, same number of rows).
@@ -275,8 +363,10 @@ pub struct Marcher<'a> {
 }
 
 impl<'a> Marcher<'a> {
+    /// A marcher on `grid` as it is now (borrowed, so its densities cannot
+    /// change under the marcher: dead blocks are skipped too).
     pub fn new(grid: &'a RadianceGrid) -> Self {
-        Self::on(grid, std::borrow::Cow::Owned(BlockOccupancy::of(grid)))
+        Self::on(grid, std::borrow::Cow::Owned(BlockOccupancy::with_density(grid)))
     }
 
     /// A marcher on an occupancy built earlier for this very grid state.
@@ -295,43 +385,17 @@ impl<'a> Marcher<'a> {
         self.grid
     }
 
-    /// When sample `k`, whose cell's base is `base`, lies in an empty
-    /// block: the index of the first sample at or after the ray's exit from
-    /// that block (the ray in lattice coordinates is `a + t d`, its first
-    /// sample at `t0 + step / 2`).
+    /// When sample `k`, whose cell's base is `base`, lies in a block that
+    /// `blocks` (`BlockOccupancy::to_visit`) marks false: the index of the
+    /// first sample at or after the ray's exit from that block.
     #[inline(always)]
-    fn skip_empty(
-        &self,
-        base: [usize; 3],
-        a: glam::Vec3,
-        d: glam::Vec3,
-        t0: f32,
-        step: f32,
-        k: usize,
-    ) -> Option<usize> {
+    fn skip_block(&self, blocks: &[bool], base: [usize; 3], ray: &LatticeRay, k: usize) -> Option<usize> {
         let b = base.map(|v| v / BLOCK);
         let occ = &*self.occupancy;
-        if occ.occupied[(b[0] * occ.blocks[1] + b[1]) * occ.blocks[2] + b[2]] {
+        if blocks[(b[0] * occ.blocks[1] + b[1]) * occ.blocks[2] + b[2]] {
             return None;
         }
-        Some(self.block_exit(b, a, d, t0, step, k))
-    }
-
-    /// The index of the first sample at or after the ray's exit from block `b`.
-    fn block_exit(&self, b: [usize; 3], a: glam::Vec3, d: glam::Vec3, t0: f32, step: f32, k: usize) -> usize {
-        let mut exit = f32::INFINITY;
-        for ax in 0..3 {
-            let bound = if d[ax] > 0.0 {
-                ((b[ax] + 1) * BLOCK) as f32
-            } else if d[ax] < 0.0 {
-                (b[ax] * BLOCK) as f32
-            } else {
-                continue;
-            };
-            exit = exit.min((bound - a[ax]) / d[ax]);
-        }
-        let next = ((exit - t0) / step - 0.5 - 1e-3).ceil();
-        if next.is_finite() && next > k as f32 { next as usize } else { k + 1 }
+        Some(ray.block_exit(b, k))
     }
 
     /// Equation-4 depth of every ray (None = miss), in parallel, without
@@ -346,9 +410,8 @@ impl<'a> Marcher<'a> {
         let geo = &grid.geometry;
         let (t0, t1) = geo.intersect(ray.origin, ray.dir)?;
         let step = ray_step(grid, ray, p);
-        // The ray in lattice coordinates: g(t) = a + t * d.
-        let a = geo.world_to_grid(ray.origin);
-        let d = ray.dir / geo.voxel_size();
+        let lattice_ray = LatticeRay::new(grid, ray, t0, step);
+        let (blocks, skip_dead) = self.occupancy.to_visit(p);
         let mut optical = 0.0f32;
         let mut cell = LastCell::new();
         let mut k = 0usize;
@@ -358,13 +421,13 @@ impl<'a> Marcher<'a> {
                 return None;
             }
             let (g, base) = lattice_point(grid, self.voxel, ray.origin + t * ray.dir);
-            if let Some(next) = self.skip_empty(base, a, d, t0, step, k) {
+            if let Some(next) = self.skip_block(blocks, base, &lattice_ray, k) {
                 k = next;
                 continue;
             }
             k += 1;
             cell.load(grid, &self.corner_offsets, base);
-            if cell.active == 0 {
+            if !cell.may_emit(skip_dead) {
                 continue;
             }
             let (_, _, sigma) = cell_sample(grid, g, base, &cell);
@@ -440,8 +503,8 @@ impl<'a> Marcher<'a> {
         let geo = &grid.geometry;
         let (t0, t1) = geo.intersect(ray.origin, ray.dir)?;
         let step = ray_step(grid, ray, p);
-        let a = geo.world_to_grid(ray.origin);
-        let d = ray.dir / geo.voxel_size();
+        let lattice_ray = LatticeRay::new(grid, ray, t0, step);
+        let (blocks, skip_dead) = self.occupancy.to_visit(p);
         let log_stop = p.stop_threshold.ln();
         let mut depth = None;
         let mut optical = 0.0f32; // sum of sigma * delta so far
@@ -455,13 +518,13 @@ impl<'a> Marcher<'a> {
                 break;
             }
             let (g, base) = lattice_point(grid, self.voxel, ray.origin + t * ray.dir);
-            if let Some(next) = self.skip_empty(base, a, d, t0, step, k) {
+            if let Some(next) = self.skip_block(blocks, base, &lattice_ray, k) {
                 k = next;
                 continue;
             }
             k += 1;
             cell.load(grid, &self.corner_offsets, base);
-            if cell.active == 0 {
+            if !cell.may_emit(skip_dead) {
                 continue;
             }
             let (fractions, w, sigma) = cell_sample(grid, g, base, &cell);
@@ -570,5 +633,52 @@ mod tests {
         assert_eq!(a.t, b.t);
         assert_eq!(a.threshold_depth, b.threshold_depth);
         assert_eq!(skipping.depths(&rays, &params), a.threshold_depth);
+    }
+
+    /// Skipping dead blocks and cells (no positive density) gives exactly
+    /// the samples and depths of a march that visits every position, on a
+    /// sphere whose -x half has negative density.
+    #[test]
+    fn dead_space_skipping_is_exact() {
+        let device = crate::util::backend::BackendKind::Flex.device();
+        let sphere = crate::field::grid::sphere_grid(48, &device);
+        let geo = sphere.geometry;
+        let density: Vec<f32> = sphere
+            .coords
+            .iter()
+            .zip(&sphere.density_cpu)
+            .map(|(&flat, &d)| {
+                let [i, _, _] = geo.unflat(flat as usize);
+                if i < 20 { -3.0 } else { d }
+            })
+            .collect();
+        let sh = crate::util::tensor::to_vec(sphere.sh.clone());
+        let grid = RadianceGrid::from_rows(geo, sphere.sh_degree, sphere.coords.clone(), density, sh, &device);
+        let skipping = Marcher::new(&grid);
+        let alive = skipping.occupancy.alive.as_ref().expect("Marcher::new knows the densities");
+        let dead = skipping.occupancy.occupied.iter().zip(alive).filter(|&(&o, &a)| o && !a).count();
+        assert!(dead > 10, "only {dead} occupied blocks are dead");
+        let mut everything = BlockOccupancy::of(&grid);
+        everything.occupied.fill(true);
+        let full = Marcher::with_occupancy(&grid, &everything);
+        let cam =
+            Camera::new(Intrinsics::from_fov_x(40, 40, 0.9), look_at(Vec3::new(-2.2, 1.0, 0.8), Vec3::ZERO, Vec3::Z));
+        let rays = cam.rays(None);
+        let params = MarchParams::default();
+        let (a, b) = (skipping.samples(&rays, &params), full.samples(&rays, &params));
+        assert!(a.num_samples() > 1000);
+        assert_eq!(a.ray_offsets, b.ray_offsets);
+        assert_eq!(a.corner_rows, b.corner_rows);
+        assert_eq!(a.corner_weights, b.corner_weights);
+        assert_eq!(a.t, b.t);
+        assert_eq!(a.threshold_depth, b.threshold_depth);
+        assert_eq!(skipping.depths(&rays, &params), a.threshold_depth);
+        // A negative threshold keeps samples of density in (threshold, 0]:
+        // then nothing dead may be skipped.
+        let keep_negative = MarchParams { sigma_threshold: -5.0, ..params };
+        let (a, b) = (skipping.samples(&rays, &keep_negative), full.samples(&rays, &keep_negative));
+        assert!(a.num_samples() > b.num_samples() / 2);
+        assert_eq!(a.ray_offsets, b.ray_offsets);
+        assert_eq!(a.corner_rows, b.corner_rows);
     }
 }

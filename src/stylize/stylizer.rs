@@ -253,7 +253,7 @@ impl<'a> Stylizer<'a> {
             ndc: meta.ndc,
             background: meta.background,
             march: MarchParams { colour_corners: job.config.colour_corners, ..meta.config.march },
-            occupancy: BlockOccupancy::of(&field.grid),
+            occupancy: BlockOccupancy::with_density(&field.grid),
             field,
             vgg: Vgg16::load(&ad),
             ad,
