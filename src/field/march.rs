@@ -267,9 +267,9 @@ struct LatticeRay {
 }
 
 impl LatticeRay {
-    fn new(grid: &RadianceGrid, ray: &Ray, t0: f32, step: f32) -> Self {
-        let geo = &grid.geometry;
-        Self { a: geo.world_to_grid(ray.origin), d: ray.dir / geo.voxel_size(), t0, step }
+    /// `voxel`: the grid's voxel size, computed once by the marcher.
+    fn new(grid: &RadianceGrid, voxel: glam::Vec3, ray: &Ray, t0: f32, step: f32) -> Self {
+        Self { a: grid.geometry.world_to_grid_in(ray.origin, voxel), d: ray.dir / voxel, t0, step }
     }
 
     /// The index of the first sample at or after the ray's exit from block
@@ -412,7 +412,7 @@ impl<'a> Marcher<'a> {
         let geo = &grid.geometry;
         let (t0, t1) = geo.intersect(ray.origin, ray.dir)?;
         let step = ray_step(grid, ray, p);
-        let lattice_ray = LatticeRay::new(grid, ray, t0, step);
+        let lattice_ray = LatticeRay::new(grid, self.voxel, ray, t0, step);
         let (blocks, skip_dead) = self.occupancy.to_visit(p);
         let mut optical = 0.0f32;
         let mut cell = LastCell::new();
@@ -505,7 +505,7 @@ impl<'a> Marcher<'a> {
         let geo = &grid.geometry;
         let (t0, t1) = geo.intersect(ray.origin, ray.dir)?;
         let step = ray_step(grid, ray, p);
-        let lattice_ray = LatticeRay::new(grid, ray, t0, step);
+        let lattice_ray = LatticeRay::new(grid, self.voxel, ray, t0, step);
         let (blocks, skip_dead) = self.occupancy.to_visit(p);
         let log_stop = p.stop_threshold.ln();
         let mut depth = None;
