@@ -13,7 +13,7 @@ use rand_chacha::ChaCha8Rng;
 use refnpr::field::checkpoint;
 use refnpr::field::composite::{self as render, BatchTensors};
 use refnpr::field::frozen::{DeviceSamples, FrozenSamples, render_colour, render_plain};
-use refnpr::field::grid::{GridGeometry, RadianceGrid};
+use refnpr::field::grid::{CellLattice, GridGeometry, RadianceGrid};
 use refnpr::field::march::{self, MarchParams, Marcher};
 use refnpr::field::optim::{RmsStart, Rmsprop};
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
@@ -84,16 +84,20 @@ fn losses_match_hand_computed_values() {
 #[test]
 fn frozen_render_matches_hand_compositing() {
     let d = common::device();
-    // Two grid rows, one cell each (all corners on the one row). The
-    // first sample sits on corner 0 (colour weight 1 there); the second
-    // half-way between corners 0 and 1 (bit 0 is z), colour weights 0.5 and
-    // 0.5, the other corners inactive.
+    // Two grid rows, one cell each: a hand-made lattice whose corners 2-7
+    // share one point, so cell 0 has every corner on row 0 and cell 3 has
+    // corners 0 and 1 on row 1, the others inactive. The first sample sits
+    // on corner 0 (colour weight 1 there); the second half-way between
+    // corners 0 and 1 (bit 0 is z), colour weights 0.5 and 0.5.
+    let lattice = CellLattice::new(std::sync::Arc::new(vec![0, 0, 0, 1, 1, -1]), [0, 1, 2, 2, 2, 2, 2, 2]);
+    assert_eq!(lattice.cell(0), ([0; 8], 0xff));
+    assert_eq!(lattice.cell(3), ([1; 8], 0b11));
     let samples = FrozenSamples {
         num_rays: 1,
         ray_offsets: vec![0, 2],
         ray_cells: vec![0, 2],
-        cell_rows: vec![0, 0, 0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 1, 1, 1, 1],
-        cell_active: vec![0xff, 0b11],
+        cell_keys: vec![0, 3],
+        lattice,
         starts_cell: vec![true, true],
         fractions: vec![[0.0, 0.0, 0.0], [0.0, 0.0, 0.5]],
         weight: vec![0.4, 0.3],
@@ -400,11 +404,11 @@ fn deferred_backprop_equals_direct_backprop() {
     assert_eq!(reused, deferred);
     // Sparse: the touched rows' gradients, in touched order; nothing elsewhere.
     let mut touched = StepRows::sparse(grid.num_rows());
-    touched.add(&samples.cell_rows);
+    touched.add(&samples.cell_rows());
     let local = to_vec(chunked_gradient(&grid.sh, &samples, bg, 173, &touched, &|rgb, start, len| {
         (rgb * g.clone().narrow(0, start, len)).sum()
     }));
-    let in_samples: std::collections::HashSet<i32> = samples.cell_rows.iter().copied().collect();
+    let in_samples: std::collections::HashSet<i32> = samples.cell_rows().into_iter().collect();
     for r in 0..grid.num_rows() as i32 {
         let ours = &deferred[r as usize * 3..r as usize * 3 + 3];
         if in_samples.contains(&r) {
@@ -446,7 +450,7 @@ fn deferred_backprop_equals_direct_backprop() {
     };
     let target = floats((0..picks.len() * 3).map(|i| (i % 7) as f32 / 7.0).collect(), [picks.len(), 3], &d);
     let mut touched_picks = StepRows::sparse(grid.num_rows());
-    touched_picks.add(&cut.cell_rows);
+    touched_picks.add(&cut.cell_rows());
     for rows in [&rows, &touched_picks] {
         let host = to_vec(chunked_gradient(&grid.sh, &cut, bg, 977, rows, &mse_of(target.clone())));
         let chunks = (0..picks.len()).step_by(977).map(|s| {
@@ -502,7 +506,7 @@ fn host_ray_kernel_matches_the_graph() {
     let target_t = floats(target.clone(), [picks.len(), 3], &d);
     for sparse in [false, true] {
         let mut rows = if sparse { StepRows::sparse(grid.num_rows()) } else { StepRows::dense(grid.num_rows()) };
-        rows.add(&cut.cell_rows);
+        rows.add(&cut.cell_rows());
         let graph = to_vec(chunked_gradient(&grid.sh, &cut, bg, 700, &rows, &|rgb, start, len| {
             let diff = rgb - target_t.clone().narrow(0, start, len);
             (diff.clone() * diff).sum() * scale

@@ -11,7 +11,7 @@
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, activation::relu};
 
 use crate::field::composite::interpolate_corners;
-use crate::field::grid::weights_of_fractions;
+use crate::field::grid::{CellLattice, weights_of_fractions};
 use crate::field::march::{ColourCorners, MarchParams, Marcher, colour_weights};
 use crate::scene::camera::Ray;
 use crate::scene::sh;
@@ -28,12 +28,15 @@ const RAYS_PER_TASK: usize = 256;
 
 /// Samples of a set of rays with their fixed weights (plain buffers),
 /// compact: consecutive samples of a ray that fall in one lattice cell
-/// (half a voxel apart, many do) share one cell entry (its 8 rows and which
-/// corners are active), and a sample keeps where it lies in its cell, not
+/// (half a voxel apart, many do) share one cell entry, the flat lattice
+/// index of the cell's base, whose 8 rows and active corners are read
+/// back from the grid's links when used (`CellLattice::cell`, what the
+/// march itself computes); a sample keeps where it lies in its cell, not
 /// its 8 colour weights, which are recomputed from that when read
 /// (`colour_weights`, the march's own formula: the same numbers to the
-/// bit). A sample costs 17 bytes and a cell 33, against 68 bytes a sample
-/// with every sample's rows and weights written out.
+/// bit). A sample costs 17 bytes and a cell 4, against 68 bytes a sample
+/// with every sample's rows and weights written out (and 33 a cell with
+/// its rows and active corners written out).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct FrozenSamples {
     pub num_rays: usize,
@@ -41,10 +44,11 @@ pub struct FrozenSamples {
     pub ray_offsets: Vec<u32>,
     /// Cells of ray r are `ray_cells[r]..ray_cells[r + 1]`.
     pub ray_cells: Vec<u32>,
-    /// 8 grid rows per cell (inactive corners point at an active row).
-    pub cell_rows: Vec<i32>,
-    /// Which corners of each cell are active: bit `c` for corner `c`.
-    pub cell_active: Vec<u8>,
+    /// The flat lattice index of each cell's base: its rows and active
+    /// corners are `lattice.cell(key)`.
+    pub cell_keys: Vec<u32>,
+    /// The links the cell keys are read through (shared with the grid).
+    pub lattice: CellLattice,
     /// Whether a sample is the first of its cell (the ray's next cell); a
     /// ray's first sample always is.
     pub starts_cell: Vec<bool>,
@@ -60,16 +64,16 @@ pub struct FrozenSamples {
 
 /// One sample as read from the lists: its index, its cell's 8 rows and its
 /// colour interpolation weights.
-pub struct ListedSample<'a> {
+pub struct ListedSample {
     pub index: usize,
-    pub rows: &'a [i32],
+    pub rows: [i32; 8],
     pub colour_weights: [f32; 8],
 }
 
 impl FrozenSamples {
-    /// No rays yet, colour weights as `colour_corners` says.
-    pub fn empty(colour_corners: ColourCorners) -> Self {
-        Self { ray_offsets: vec![0], ray_cells: vec![0], colour_corners, ..Default::default() }
+    /// No rays yet, cells read through `lattice`, colour weights as `colour_corners` says.
+    pub fn empty(lattice: CellLattice, colour_corners: ColourCorners) -> Self {
+        Self { ray_offsets: vec![0], ray_cells: vec![0], lattice, colour_corners, ..Default::default() }
     }
 
     /// Marches `rays` through the grid and computes every sample's weight from
@@ -96,7 +100,8 @@ impl FrozenSamples {
         chunk: usize,
         budget: usize,
     ) -> Option<Self> {
-        let mut out = Self::empty(params.colour_corners);
+        let lattice = marcher.lattice();
+        let mut out = Self::empty(lattice.clone(), params.colour_corners);
         out.ray_offsets.reserve(rays.len());
         out.ray_cells.reserve(rays.len());
         for part in rays.chunks(chunk.max(1)) {
@@ -106,7 +111,7 @@ impl FrozenSamples {
             let pieces: Vec<FrozenSamples> = part
                 .par_chunks(RAYS_PER_TASK)
                 .map(|rays| {
-                    let mut piece = Self::empty(params.colour_corners);
+                    let mut piece = Self::empty(lattice.clone(), params.colour_corners);
                     for ray in rays {
                         piece.push_ray(marcher, ray, params, min_weight);
                     }
@@ -126,23 +131,22 @@ impl FrozenSamples {
     /// Marches one ray and appends the samples whose compositing weight
     /// exceeds `min_weight` (0 keeps all), as they are found: no packed
     /// batch of every sample is built first. A kept sample opens a new
-    /// cell entry unless its rows and active corners are those of the
-    /// ray's previous kept sample.
+    /// cell entry unless it lies in the cell of the ray's previous kept
+    /// sample.
     fn push_ray(&mut self, marcher: &Marcher, ray: &Ray, params: &MarchParams, min_weight: f32) {
         let mut optical = 0.0f32;
-        let first_cell = self.cell_active.len();
+        let first_cell = self.cell_keys.len();
         marcher.walk(ray, params, |s| {
             let tau = s.sigma.max(0.0) * s.delta;
             let w = (-optical).exp() * (1.0 - (-tau).exp());
             optical += tau;
             if w > min_weight || (min_weight == 0.0 && w >= 0.0) {
-                let last = self.cell_active.len();
-                let same_cell = last > first_cell
-                    && self.cell_active[last - 1] == s.active
-                    && self.cell_rows[(last - 1) * 8..] == s.rows;
+                // Lattice indices fit u32: the grid's `coords` are u32 too.
+                let key = s.key as u32;
+                let last = self.cell_keys.len();
+                let same_cell = last > first_cell && self.cell_keys[last - 1] == key;
                 if !same_cell {
-                    self.cell_rows.extend_from_slice(&s.rows);
-                    self.cell_active.push(s.active);
+                    self.cell_keys.push(key);
                 }
                 self.starts_cell.push(!same_cell);
                 self.fractions.push(s.fractions);
@@ -151,7 +155,7 @@ impl FrozenSamples {
         });
         self.final_transmittance.push((-optical).exp());
         self.ray_offsets.push(self.weight.len() as u32);
-        self.ray_cells.push(self.cell_active.len() as u32);
+        self.ray_cells.push(self.cell_keys.len() as u32);
         self.num_rays += 1;
     }
 
@@ -160,37 +164,57 @@ impl FrozenSamples {
     }
 
     pub fn num_cells(&self) -> usize {
-        self.cell_active.len()
+        self.cell_keys.len()
     }
 
-    /// Bytes held by the buffers.
+    /// Bytes held by the buffers (the shared links not counted: the grid holds them).
     pub fn bytes(&self) -> usize {
-        (self.ray_offsets.len() + self.ray_cells.len() + self.final_transmittance.len()) * 4
-            + self.cell_rows.len() * 4
-            + self.cell_active.len()
+        (self.ray_offsets.len() + self.ray_cells.len() + self.final_transmittance.len() + self.cell_keys.len()) * 4
             + self.num_samples() * (1 + 12 + 4)
     }
 
-    /// The grid rows of ray `r`'s cells, 8 per cell (what its samples touch).
-    pub fn ray_rows(&self, r: usize) -> &[i32] {
-        &self.cell_rows[self.ray_cells[r] as usize * 8..self.ray_cells[r + 1] as usize * 8]
+    /// The cells of ray `r` (their base's lattice index; what its samples touch).
+    pub fn ray_cells(&self, r: usize) -> &[u32] {
+        &self.cell_keys[self.ray_cells[r] as usize..self.ray_cells[r + 1] as usize]
+    }
+
+    /// Starts loading the links of ray `r`'s cells (`CellLattice::prefetch`):
+    /// a pass over rays calls it a few rays ahead, so that reading a cell's
+    /// rows does not wait on memory first (a step's pseudo-rays lie anywhere
+    /// in the lattice, and a cell's link reads and then its SH rows' reads
+    /// would each wait in turn).
+    #[inline]
+    pub fn prefetch_ray(&self, r: usize) {
+        for &key in self.ray_cells(r) {
+            self.lattice.prefetch(key as usize);
+        }
+    }
+
+    /// The grid rows of every cell, 8 per cell, in cell order.
+    pub fn cell_rows(&self) -> Vec<i32> {
+        self.cell_keys.iter().flat_map(|&k| self.lattice.cell(k as usize).0).collect()
     }
 
     /// The samples of ray `r`, front to back, with their cells' rows and
     /// their colour weights.
-    pub fn ray_samples(&self, r: usize) -> impl Iterator<Item = ListedSample<'_>> + '_ {
+    pub fn ray_samples(&self, r: usize) -> impl Iterator<Item = ListedSample> + '_ {
         let (lo, hi) = (self.ray_offsets[r] as usize, self.ray_offsets[r + 1] as usize);
-        // The cell before the ray's first (its first sample starts one).
+        // Each cell is read when its first sample is (a ray's first sample
+        // always starts one; a ray without samples has no cell).
         let mut cell = self.ray_cells[r] as usize;
+        let mut corners = ([-1; 8], 0u8);
         (lo..hi).map(move |s| {
-            if self.starts_cell[s] && s > lo {
-                cell += 1;
+            if self.starts_cell[s] {
+                if s > lo {
+                    cell += 1;
+                }
+                corners = self.lattice.cell(self.cell_keys[cell] as usize);
             }
             let w = weights_of_fractions(self.fractions[s]);
             ListedSample {
                 index: s,
-                rows: &self.cell_rows[cell * 8..cell * 8 + 8],
-                colour_weights: colour_weights(&w, self.cell_active[cell], self.colour_corners),
+                rows: corners.0,
+                colour_weights: colour_weights(&w, corners.1, self.colour_corners),
             }
         })
     }
@@ -202,7 +226,7 @@ impl FrozenSamples {
         let mut weights = Vec::with_capacity(self.num_samples() * 8);
         for r in 0..self.num_rays {
             for s in self.ray_samples(r) {
-                rows.extend_from_slice(s.rows);
+                rows.extend_from_slice(&s.rows);
                 weights.extend_from_slice(&s.colour_weights);
             }
         }
@@ -211,7 +235,7 @@ impl FrozenSamples {
 
     /// The samples of the given rays (in that order; repeats allowed).
     pub fn subset(&self, rays: &[usize]) -> FrozenSamples {
-        let mut out = Self::empty(self.colour_corners);
+        let mut out = Self::empty(self.lattice.clone(), self.colour_corners);
         out.ray_offsets.reserve(rays.len());
         out.ray_cells.reserve(rays.len());
         for &r in rays {
@@ -220,20 +244,29 @@ impl FrozenSamples {
         out
     }
 
-    /// Appends ray `r` of `from` (lists of the same march settings).
+    /// Appends ray `r` of `from` (lists of the same march settings and lattice).
     pub fn push_ray_of(&mut self, from: &FrozenSamples, r: usize) {
         debug_assert_eq!(self.colour_corners, from.colour_corners);
+        self.adopt_lattice(from);
         let (lo, hi) = (from.ray_offsets[r] as usize, from.ray_offsets[r + 1] as usize);
-        let (cl, ch) = (from.ray_cells[r] as usize, from.ray_cells[r + 1] as usize);
-        self.cell_rows.extend_from_slice(&from.cell_rows[cl * 8..ch * 8]);
-        self.cell_active.extend_from_slice(&from.cell_active[cl..ch]);
+        self.cell_keys.extend_from_slice(from.ray_cells(r));
         self.starts_cell.extend_from_slice(&from.starts_cell[lo..hi]);
         self.fractions.extend_from_slice(&from.fractions[lo..hi]);
         self.weight.extend_from_slice(&from.weight[lo..hi]);
         self.final_transmittance.push(from.final_transmittance[r]);
         self.ray_offsets.push(self.weight.len() as u32);
-        self.ray_cells.push(self.cell_active.len() as u32);
+        self.ray_cells.push(self.cell_keys.len() as u32);
         self.num_rays += 1;
+    }
+
+    /// Lists without cells take the lattice of `from` (whose cells they are
+    /// about to copy); lists with cells must already read through it.
+    fn adopt_lattice(&mut self, from: &FrozenSamples) {
+        if self.cell_keys.is_empty() {
+            self.lattice = from.lattice.clone();
+        } else {
+            debug_assert!(from.cell_keys.is_empty() || self.lattice == from.lattice, "lists of two lattices");
+        }
     }
 
     /// Rays `start..start + len` (for chunked rendering).
@@ -248,11 +281,11 @@ impl FrozenSamples {
             self.ray_offsets.push(0);
             self.ray_cells.push(0);
         }
+        self.adopt_lattice(b);
         let (samples, cells) = (self.num_samples() as u32, self.num_cells() as u32);
         self.ray_offsets.extend(b.ray_offsets[1..].iter().map(|o| o + samples));
         self.ray_cells.extend(b.ray_cells[1..].iter().map(|o| o + cells));
-        self.cell_rows.extend_from_slice(&b.cell_rows);
-        self.cell_active.extend_from_slice(&b.cell_active);
+        self.cell_keys.extend_from_slice(&b.cell_keys);
         self.starts_cell.extend_from_slice(&b.starts_cell);
         self.fractions.extend_from_slice(&b.fractions);
         self.weight.extend_from_slice(&b.weight);
@@ -262,6 +295,13 @@ impl FrozenSamples {
 
     /// The buffers on a device (rows and colour weights written out per sample).
     pub fn upload(&self, device: &Device) -> FrozenTensors {
+        let (rows, weights) = self.expanded();
+        self.upload_expanded(rows, weights, device)
+    }
+
+    /// `upload` with the rows and colour weights of `expanded` given (the
+    /// rows possibly renumbered).
+    pub fn upload_expanded(&self, rows: Vec<i32>, weights: Vec<f32>, device: &Device) -> FrozenTensors {
         let s = self.num_samples();
         let mut ray_of_sample = Vec::with_capacity(s);
         for r in 0..self.num_rays {
@@ -269,7 +309,6 @@ impl FrozenSamples {
                 ray_of_sample.push(r as i32);
             }
         }
-        let (rows, weights) = self.expanded();
         FrozenTensors {
             num_rays: self.num_rays,
             num_samples: s,
@@ -527,13 +566,11 @@ mod tests {
         let mut appended = lists.subset(&picks[..2]);
         appended.append(&lists.subset(&picks[2..]));
         for (k, &r) in picks.iter().enumerate() {
-            let want: Vec<(Vec<i32>, [f32; 8])> =
-                lists.ray_samples(r).map(|s| (s.rows.to_vec(), s.colour_weights)).collect();
+            let want: Vec<([i32; 8], [f32; 8])> = lists.ray_samples(r).map(|s| (s.rows, s.colour_weights)).collect();
             for set in [&picked, &appended] {
-                let got: Vec<(Vec<i32>, [f32; 8])> =
-                    set.ray_samples(k).map(|s| (s.rows.to_vec(), s.colour_weights)).collect();
+                let got: Vec<([i32; 8], [f32; 8])> = set.ray_samples(k).map(|s| (s.rows, s.colour_weights)).collect();
                 assert_eq!(got, want, "ray {r}");
-                assert_eq!(set.ray_rows(k), lists.ray_rows(r));
+                assert_eq!(set.ray_cells(k), lists.ray_cells(r));
             }
         }
         let some = FrozenSamples::march(&marcher, &rays, &params, 0.0).bytes();

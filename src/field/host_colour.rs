@@ -27,6 +27,10 @@ use crate::util::pool::{BufferPool, sum_in_order};
 /// Parts the rays are split into (each with its own gradient buffer).
 const PARTS: usize = 8;
 
+/// How many rays ahead a pass starts loading a ray's cells
+/// (`FrozenSamples::prefetch_ray`).
+const AHEAD: usize = 2;
+
 /// The parts' gradient buffers, kept between calls (see `util::pool`).
 static PART_BUFFERS: BufferPool = BufferPool::new(PARTS);
 
@@ -57,8 +61,12 @@ where
             let mut total = 0.0f64;
             // The ray's samples and interpolated coefficients, kept from the colour for the gradient.
             let mut listed: Vec<(ListedSample, [f32; 3])> = Vec::new();
-            for k in p * per_part..((p + 1) * per_part).min(n) {
+            let end = ((p + 1) * per_part).min(n);
+            for k in p * per_part..end {
                 let r = rays.map_or(k, |rs| rs[k]);
+                if k + AHEAD < end {
+                    samples.prefetch_ray(rays.map_or(k + AHEAD, |rs| rs[k + AHEAD]));
+                }
                 listed.clear();
                 listed.extend(samples.ray_samples(r).map(|s| {
                     let pre = interpolate(sh, &s);
@@ -78,7 +86,7 @@ where
                         if g == 0.0 {
                             continue;
                         }
-                        for (&t, &row) in s.colour_weights.iter().zip(s.rows) {
+                        for (&t, &row) in s.colour_weights.iter().zip(&s.rows) {
                             if t != 0.0 {
                                 grad[slot(row) as usize * 3 + c] += t * g;
                             }
@@ -107,7 +115,11 @@ pub fn render(sh: &[f32], samples: &FrozenSamples, rays: Option<&[usize]>, backg
     let mut out = vec![0.0f32; n * 3];
     out.par_chunks_mut(3 * 1024).enumerate().for_each(|(p, chunk)| {
         for (i, px) in chunk.chunks_mut(3).enumerate() {
-            let r = rays.map_or(p * 1024 + i, |rs| rs[p * 1024 + i]);
+            let k = p * 1024 + i;
+            let r = rays.map_or(k, |rs| rs[k]);
+            if k + AHEAD < n {
+                samples.prefetch_ray(rays.map_or(k + AHEAD, |rs| rs[k + AHEAD]));
+            }
             let coefficients = samples.ray_samples(r).map(|s| (s.index, interpolate(sh, &s)));
             px.copy_from_slice(&composite(samples, coefficients, r, background));
         }
@@ -118,7 +130,7 @@ pub fn render(sh: &[f32], samples: &FrozenSamples, rays: Option<&[usize]>, backg
 /// The interpolated SH coefficients of a sample.
 fn interpolate(sh: &[f32], s: &ListedSample) -> [f32; 3] {
     let mut pre = [0.0f32; 3];
-    for (&t, &row) in s.colour_weights.iter().zip(s.rows) {
+    for (&t, &row) in s.colour_weights.iter().zip(&s.rows) {
         let row = row as usize;
         for c in 0..3 {
             pre[c] += t * sh[row * 3 + c];

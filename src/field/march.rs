@@ -5,7 +5,7 @@
 //! trilinear gathers, colours, transmittance, weights, per-ray sums - is the
 //! Burn graph in `composite` (and `frozen` for the stylization).
 
-use crate::field::grid::{RadianceGrid, weights_of_fractions};
+use crate::field::grid::{CellLattice, RadianceGrid, weights_of_fractions};
 use crate::scene::camera::Ray;
 use crate::scene::sh;
 use rayon::prelude::*;
@@ -102,6 +102,9 @@ pub struct MarchSample {
     pub fractions: [f32; 3],
     /// Which corners are active: bit `c` for corner `c`.
     pub active: u8,
+    /// The flat lattice index of the cell's base (`CellLattice::cell` gives
+    /// back `rows` and `active` from it).
+    pub key: usize,
     /// Distance along the ray and the interval length.
     pub t: f32,
     pub delta: f32,
@@ -166,13 +169,14 @@ impl LastCell {
     /// branches, on whether a corner is empty (about a third of fern's
     /// lattice points are, in no pattern).
     #[inline(always)]
-    fn load(&mut self, grid: &RadianceGrid, corner_offsets: &[usize; 8], base: [usize; 3]) {
+    fn load(&mut self, grid: &RadianceGrid, links: &[i32], corner_offsets: &[usize; 8], base: [usize; 3]) {
         let key = grid.geometry.flat(base[0], base[1], base[2]);
         if self.key == key {
             return;
         }
         self.key = key;
-        let raw: [i32; 8] = std::array::from_fn(|c| grid.links[key + corner_offsets[c]]);
+        // `cell_corners`, with each corner's density read in the same pass.
+        let raw: [i32; 8] = std::array::from_fn(|c| links[key + corner_offsets[c]]);
         self.active = raw.iter().enumerate().fold(0u8, |bits, (c, &r)| bits | (u8::from(r >= 0) << c));
         if self.active == 0 {
             self.rows = [-1; 8];
@@ -387,6 +391,11 @@ impl<'a> Marcher<'a> {
         self.grid
     }
 
+    /// The grid's links and cell corners (what a sample's `key` names).
+    pub fn lattice(&self) -> CellLattice {
+        CellLattice::of(self.grid)
+    }
+
     /// When sample `k`, whose cell's base is `base`, lies in a block that
     /// `blocks` (`BlockOccupancy::to_visit`) marks false: the index of the
     /// first sample at or after the ray's exit from that block.
@@ -409,6 +418,7 @@ impl<'a> Marcher<'a> {
     /// The same march and sub-sample crossing as `walk`, stopping at the crossing.
     fn depth(&self, ray: &Ray, p: &MarchParams) -> Option<f32> {
         let grid = self.grid;
+        let links: &[i32] = &grid.links;
         let geo = &grid.geometry;
         let (t0, t1) = geo.intersect(ray.origin, ray.dir)?;
         let step = ray_step(grid, ray, p);
@@ -428,7 +438,7 @@ impl<'a> Marcher<'a> {
                 continue;
             }
             k += 1;
-            cell.load(grid, &self.corner_offsets, base);
+            cell.load(grid, links, &self.corner_offsets, base);
             if !cell.may_emit(skip_dead) {
                 continue;
             }
@@ -502,6 +512,7 @@ impl<'a> Marcher<'a> {
     /// `host_render::render_rays`), so all see the very same samples.
     pub fn walk(&self, ray: &Ray, p: &MarchParams, mut visit: impl FnMut(&MarchSample)) -> Option<f32> {
         let grid = self.grid;
+        let links: &[i32] = &grid.links;
         let geo = &grid.geometry;
         let (t0, t1) = geo.intersect(ray.origin, ray.dir)?;
         let step = ray_step(grid, ray, p);
@@ -525,7 +536,7 @@ impl<'a> Marcher<'a> {
                 continue;
             }
             k += 1;
-            cell.load(grid, &self.corner_offsets, base);
+            cell.load(grid, links, &self.corner_offsets, base);
             if !cell.may_emit(skip_dead) {
                 continue;
             }
@@ -538,6 +549,7 @@ impl<'a> Marcher<'a> {
                     colour_weights: colour_weights(&w, active, p.colour_corners),
                     fractions,
                     active,
+                    key: cell.key,
                     t,
                     delta: step,
                     sigma,

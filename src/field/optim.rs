@@ -11,6 +11,7 @@ use burn::tensor::{Int, Tensor};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::field::grid::CellLattice;
 use crate::util::rows_op;
 
 /// Exponential decay from `a` to `b` over `t` in [0, 1].
@@ -225,18 +226,36 @@ impl RowSubset {
     /// tens of millions of corner entries; measured, this is not where a
     /// fern step's `step_rows` time goes: see the README's fern profile).
     pub fn reset_to_union(&mut self, num_rows: usize, lists: &[&[i32]]) {
+        self.reset_to_union_with_cells(num_rows, lists, &CellLattice::default(), &[]);
+    }
+
+    /// `reset_to_union` of `lists` and the rows of the cells `cells` (lattice
+    /// indices of their bases, read through `lattice`).
+    pub fn reset_to_union_with_cells(
+        &mut self,
+        num_rows: usize,
+        lists: &[&[i32]],
+        lattice: &CellLattice,
+        cells: &[&[u32]],
+    ) {
         use std::sync::atomic::{AtomicU64, Ordering::Relaxed};
         const CHUNK: usize = 1 << 16;
         self.clear(num_rows);
         let words: Vec<AtomicU64> = (0..num_rows.div_ceil(64)).map(|_| AtomicU64::new(0)).collect();
-        lists.par_iter().flat_map(|list| list.par_chunks(CHUNK)).for_each(|chunk| {
-            for &r in chunk {
-                assert!(r >= 0 && (r as usize) < num_rows, "row {r} out of range for {num_rows} rows");
-                let (word, bit) = (&words[r as usize / 64], 1u64 << (r % 64));
-                // Most entries repeat a row (neighbouring samples share corners): read first.
-                if word.load(Relaxed) & bit == 0 {
-                    word.fetch_or(bit, Relaxed);
-                }
+        let mark = |r: i32| {
+            assert!(r >= 0 && (r as usize) < num_rows, "row {r} out of range for {num_rows} rows");
+            let (word, bit) = (&words[r as usize / 64], 1u64 << (r % 64));
+            // Most entries repeat a row (neighbouring samples share corners): read first.
+            if word.load(Relaxed) & bit == 0 {
+                word.fetch_or(bit, Relaxed);
+            }
+        };
+        lists.par_iter().flat_map(|list| list.par_chunks(CHUNK)).for_each(|chunk| chunk.iter().for_each(|&r| mark(r)));
+        // A cell's empty corners point at one of its active rows: its
+        // active corners' rows are all it touches.
+        cells.par_iter().flat_map(|list| list.par_chunks(CHUNK / 8)).for_each(|chunk| {
+            for &key in chunk {
+                lattice.raw_rows(key as usize).into_iter().filter(|&r| r >= 0).for_each(mark);
             }
         });
         for (w, word) in words.into_iter().enumerate() {
@@ -281,6 +300,7 @@ impl RowSubset {
 #[cfg(test)]
 mod tests {
     use super::RowSubset;
+    use crate::field::grid::CellLattice;
 
     /// A reused subset must behave as a fresh one: rows of the previous
     /// subset are forgotten, local indices follow first-seen order.
@@ -305,5 +325,11 @@ mod tests {
         u.reset_to_union(200, &[&[130, 5, 64, 5], &[], &[63, 130, 199, 0]]);
         assert_eq!(u.rows(), &[0, 5, 63, 64, 130, 199]);
         assert_eq!((u.local(64), u.local(199), u.local(7), u.local(3)), (3, 5, -1, -1));
+        // With cells: a 1x2x3 lattice whose corner offsets reach +1 and +3
+        // (the other corners repeat the base); point 4 is empty.
+        let lattice = CellLattice::new(std::sync::Arc::new(vec![9, 8, 7, 6, -1, 5]), [0, 1, 3, 4, 0, 1, 3, 4]);
+        u.reset_to_union_with_cells(12, &[&[11]], &lattice, &[&[1], &[0, 0]]);
+        // Cell 1: points 1, 2, 4 (empty), 5; cell 0: points 0, 1, 3, 4 (empty).
+        assert_eq!(u.rows(), &[5, 6, 7, 8, 9, 11]);
     }
 }

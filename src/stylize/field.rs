@@ -10,7 +10,7 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
 use crate::field::frozen::{self, FrozenSamples};
-use crate::field::grid::RadianceGrid;
+use crate::field::grid::{CellLattice, RadianceGrid};
 use crate::field::optim::{Rmsprop, RowSubset, TvNorm, total_variation};
 use crate::scene::sh;
 use crate::stylize::colour_transfer::ColourTransfer;
@@ -162,15 +162,16 @@ impl StyleField {
     }
 
     /// The rows a step will update: all (dense), or those of its samples'
-    /// corners and its TV rows (sparse), in increasing row order.
-    pub fn step_rows(&self, sparse: bool, corner_rows: &[&[i32]], tv: &[Vec<i32>]) -> StepRows {
+    /// cells (`FrozenSamples::cell_keys` of lists marched on this field's
+    /// grid) and its TV rows (sparse), in increasing row order.
+    pub fn step_rows(&self, sparse: bool, cells: &[&[u32]], tv: &[Vec<i32>]) -> StepRows {
         let n = self.grid.num_rows();
         if !sparse {
             return StepRows::dense(n);
         }
         let mut touched = self.touched.take();
-        let lists: Vec<&[i32]> = corner_rows.iter().copied().chain(tv.iter().map(Vec::as_slice)).collect();
-        touched.reset_to_union(n, &lists);
+        let tv: Vec<&[i32]> = tv.iter().map(Vec::as_slice).collect();
+        touched.reset_to_union_with_cells(n, &tv, &CellLattice::of(&self.grid), cells);
         StepRows { num_rows: n, touched: Some(touched), on_device: Default::default() }
     }
 
@@ -256,13 +257,18 @@ impl DeviceChunk {
         subset: &mut RowSubset,
         device: &burn::tensor::Device,
     ) -> Self {
-        let mut part = samples.range(start, len);
-        subset.reset_to(num_grid_rows, &part.cell_rows);
-        for r in part.cell_rows.iter_mut() {
-            *r = subset.local(*r);
-        }
+        let part = samples.range(start, len);
+        let (rows, weights) = part.expanded();
+        subset.reset_to(num_grid_rows, &rows);
+        let local = rows.iter().map(|&r| subset.local(r)).collect();
         let rows = subset.rows().to_vec();
-        Self { start, len, rows_t: indices(rows.clone(), device), rows, samples: part.upload(device) }
+        Self {
+            start,
+            len,
+            rows_t: indices(rows.clone(), device),
+            rows,
+            samples: part.upload_expanded(local, weights, device),
+        }
     }
 
     /// Every chunk of `samples`, uploaded.

@@ -19,7 +19,7 @@ use rayon::prelude::*;
 use crate::eval::metrics::psnr_from_mse;
 use crate::field::checkpoint::{self, CheckpointMeta};
 use crate::field::frozen::{self, DeviceSamples, FrozenSamples};
-use crate::field::grid::RadianceGrid;
+use crate::field::grid::{CellLattice, RadianceGrid};
 use crate::field::host_colour;
 use crate::field::march::{BlockOccupancy, MarchParams, Marcher};
 use crate::field::optim::{Rmsprop, log_lerp};
@@ -68,9 +68,9 @@ struct PseudoRays<'s> {
 }
 
 impl PseudoRays<'_> {
-    /// The corner rows of each ray's cells (the step's rows).
-    fn corner_rows(&self) -> impl Iterator<Item = &[i32]> {
-        self.rays.iter().map(move |&r| self.lists.ray_rows(r))
+    /// Each ray's cells (whose corners are the step's rows).
+    fn cells(&self) -> impl Iterator<Item = &[u32]> {
+        self.rays.iter().map(move |&r| self.lists.ray_cells(r))
     }
 }
 
@@ -516,10 +516,9 @@ impl<'a> Stylizer<'a> {
         let (pseudo, tv, rows) = self.profile.time("step_rows", || {
             let pseudo = if self.job.method == Method::RefNpr { self.pseudo_ray_batch(&mut rng) } else { Vec::new() };
             let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
-            let corners: Vec<&[i32]> = std::iter::once(&samples.cell_rows[..])
-                .chain(pseudo.iter().flat_map(PseudoRays::corner_rows))
-                .collect();
-            let rows = self.field.step_rows(self.cfg.optim.sparse, &corners, &tv);
+            let cells: Vec<&[u32]> =
+                std::iter::once(&samples.cell_keys[..]).chain(pseudo.iter().flat_map(PseudoRays::cells)).collect();
+            let rows = self.field.step_rows(self.cfg.optim.sparse, &cells, &tv);
             (pseudo, tv, rows)
         });
         // The grid as host numbers, read once for the step's fused ray passes (`ray_kernel`).
@@ -722,7 +721,7 @@ impl<'a> Stylizer<'a> {
         });
         let (tv, rows) = self.profile.time("step_rows", || {
             let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
-            let rows = self.field.step_rows(self.cfg.optim.sparse, &[&samples.cell_rows], &tv);
+            let rows = self.field.step_rows(self.cfg.optim.sparse, &[&samples.cell_keys], &tv);
             (tv, rows)
         });
         let (grad, mse) = self.profile.time("photo_loss", || match self.host_kernel() {
@@ -954,18 +953,18 @@ impl<'a> Stylizer<'a> {
             .collect();
         // Copied in parallel pieces (random reads across the views' lists),
         // appended in order: the same lists as one serial copy.
-        let corners = self.march.colour_corners;
+        let (lattice, corners) = (CellLattice::of(&self.field.grid), self.march.colour_corners);
         let pieces: Vec<FrozenSamples> = sources
             .par_chunks(2048)
             .map(|part| {
-                let mut piece = FrozenSamples::empty(corners);
+                let mut piece = FrozenSamples::empty(lattice.clone(), corners);
                 for &(from, r) in part {
                     piece.push_ray_of(from, r);
                 }
                 piece
             })
             .collect();
-        let mut lists = FrozenSamples::empty(self.march.colour_corners);
+        let mut lists = FrozenSamples::empty(lattice, corners);
         for piece in &pieces {
             lists.append(piece);
         }
