@@ -232,6 +232,8 @@ impl CellLattice {
     /// neighbours along z, adjacent in the links: one line each pair.
     #[inline(always)]
     pub fn prefetch(&self, key: usize) {
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = key;
         #[cfg(target_arch = "x86_64")]
         for c in [0, 2, 4, 6] {
             let point = self.links.as_ptr().wrapping_add(key + self.corner_offsets[c]);
