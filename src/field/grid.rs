@@ -214,13 +214,23 @@ impl CellLattice {
         Self { links, corner_offsets }
     }
 
-    /// The rows and active corners of the cell whose base is lattice point `key`.
+    /// The rows of the 8 corners of the cell whose base is lattice point
+    /// `key` and which corners are active (bit `c` for corner `c`): an empty
+    /// corner points at the first active corner's row (all -1 when none is
+    /// active). Selects, not branches, on emptiness (about a third of fern's
+    /// lattice points are empty, in no pattern a predictor learns).
     #[inline(always)]
     pub fn cell(&self, key: usize) -> ([i32; 8], u8) {
-        cell_corners(&self.links, &self.corner_offsets, key)
+        let raw = self.raw_rows(key);
+        let active = raw.iter().enumerate().fold(0u8, |bits, (c, &r)| bits | (u8::from(r >= 0) << c));
+        if active == 0 {
+            return ([-1; 8], 0);
+        }
+        let first = raw[active.trailing_zeros() as usize];
+        (raw.map(|r| if r >= 0 { r } else { first }), active)
     }
 
-    /// The active corners' rows of the cell at `key` (-1 for an empty corner).
+    /// The links of the 8 corners of the cell at `key` (-1 for an empty corner).
     #[inline(always)]
     pub fn raw_rows(&self, key: usize) -> [i32; 8] {
         std::array::from_fn(|c| self.links[key + self.corner_offsets[c]])
@@ -251,22 +261,6 @@ impl PartialEq for CellLattice {
         self.corner_offsets == other.corner_offsets
             && (Arc::ptr_eq(&self.links, &other.links) || self.links == other.links)
     }
-}
-
-/// The rows of the 8 corners of the cell whose base is lattice point `key`
-/// and which corners are active (bit `c` for corner `c`): an empty corner
-/// points at the first active corner's row (all -1 when none is active).
-/// Selects, not branches, on emptiness (about a third of fern's lattice
-/// points are empty, in no pattern a predictor learns).
-#[inline(always)]
-pub fn cell_corners(links: &[i32], corner_offsets: &[usize; 8], key: usize) -> ([i32; 8], u8) {
-    let raw: [i32; 8] = std::array::from_fn(|c| links[key + corner_offsets[c]]);
-    let active = raw.iter().enumerate().fold(0u8, |bits, (c, &r)| bits | (u8::from(r >= 0) << c));
-    if active == 0 {
-        return ([-1; 8], 0);
-    }
-    let first = raw[active.trailing_zeros() as usize];
-    (raw.map(|r| if r >= 0 { r } else { first }), active)
 }
 
 /// The radiance grid.

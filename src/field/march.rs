@@ -175,7 +175,8 @@ impl LastCell {
             return;
         }
         self.key = key;
-        // `cell_corners`, with each corner's density read in the same pass.
+        // `CellLattice::cell`, with each corner's density read in the same
+        // pass (kept apart: this is the march's hottest loop).
         let raw: [i32; 8] = std::array::from_fn(|c| links[key + corner_offsets[c]]);
         self.active = raw.iter().enumerate().fold(0u8, |bits, (c, &r)| bits | (u8::from(r >= 0) << c));
         if self.active == 0 {
