@@ -353,7 +353,7 @@ fn long_gathers_and_scatters_are_exact() {
 /// Burn's own operations give, repeated rows included, on every backend.
 #[test]
 fn row_gathers_and_adds_match_select_and_select_assign() {
-    use refnpr::util::rows_op::{add_to_rows, gather_rows};
+    use refnpr::util::rows_op::{add_to_rows, gather_rows, read_rows_into};
     use refnpr::util::tensor::{assign_rows, indices, select_rows};
     let d = common::device();
     let (n, cols) = (5000, 7);
@@ -362,6 +362,9 @@ fn row_gathers_and_adds_match_select_and_select_assign() {
     let rows_t = indices(rows.clone(), &d);
     let ours = to_vec(gather_rows(&grid, &rows, &rows_t));
     assert_eq!(ours, to_vec(select_rows(grid.clone(), rows_t.clone())), "gather");
+    let mut kept = vec![9.0; 3];
+    read_rows_into(&grid, &rows, &rows_t, &mut kept);
+    assert_eq!(kept, ours, "gather into a kept buffer");
     let values = floats((0..rows.len() * cols).map(|i| (i % 13) as f32 - 6.0).collect(), [rows.len(), cols], &d);
     let expected =
         to_vec(assign_rows(grid.clone(), rows_t.clone(), values.clone(), burn::tensor::IndexingUpdateOp::Add));

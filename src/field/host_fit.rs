@@ -28,7 +28,7 @@ use crate::field::relu;
 
 use crate::field::host_render::sample_values;
 use crate::field::march::SampleBatch;
-use crate::util::pool::sum_in_order;
+use crate::util::pool::sum_in_order_into;
 
 /// Parts the rays are split into, each with its own gradient buffers
 /// (`rows * (1 + 3 num_basis)` values each: few, as SH degree 2 has 28
@@ -52,6 +52,17 @@ pub struct FitGradient {
 #[derive(Debug, Default)]
 pub struct FitBuffers {
     parts: Vec<PartBuffers>,
+    /// The summed gradients' allocations, handed out in a `FitGradient`
+    /// and given back with [`FitBuffers::keep`].
+    density: Vec<f32>,
+    sh: Vec<f32>,
+}
+
+impl FitBuffers {
+    /// Takes back a step's gradient buffers for the next step.
+    pub fn keep(&mut self, grad: FitGradient) {
+        (self.density, self.sh) = (grad.density, grad.sh);
+    }
 }
 
 #[derive(Debug, Default)]
@@ -120,10 +131,12 @@ pub fn mse_gradient(
     let parts = &buffers.parts[..num_parts];
     let density: Vec<&[f32]> = parts.iter().map(|p| &p.density[..]).collect();
     let sh: Vec<&[f32]> = parts.iter().map(|p| &p.sh[..]).collect();
+    sum_in_order_into(&density, rows, &mut buffers.density);
+    sum_in_order_into(&sh, rows * stride, &mut buffers.sh);
     FitGradient {
         mse: squared.iter().sum::<f64>() / (3 * n.max(1)) as f64,
-        density: sum_in_order(&density, rows),
-        sh: sum_in_order(&sh, rows * stride),
+        density: std::mem::take(&mut buffers.density),
+        sh: std::mem::take(&mut buffers.sh),
     }
 }
 

@@ -87,21 +87,39 @@ impl Rmsprop {
         update
     }
 
-    /// [`step_rows`](Self::step_rows)' arithmetic on host values (the CPU
-    /// backends' training step): `avg` holds the rows' running averages and
-    /// `grad` their gradients; on return `grad` holds what to add to the
-    /// rows and `avg` what to add to their averages, the same numbers
-    /// `step_rows` adds (same operations in the same order).
-    pub fn host_row_steps(&self, avg: &mut [f32], grad: &mut [f32], lr: f32) {
-        assert_eq!(avg.len(), grad.len(), "one running average per gradient");
-        avg.par_iter_mut().zip(grad.par_iter_mut()).with_min_len(1 << 14).for_each(|(v, g)| {
-            let sq = *g * *g;
-            let v_new = match self.start {
-                RmsStart::FirstGrad if *v == 0.0 => sq,
-                _ => *v * self.beta + sq * (1.0 - self.beta),
-            };
-            *g = *g / (v_new.sqrt() + self.eps) * (-lr);
-            *v = v_new - *v;
+    /// One coordinate's step: from its running average `v` and gradient `g`,
+    /// what to add to the average and what to add to the coordinate.
+    #[inline]
+    fn coordinate_step(&self, v: f32, g: f32, lr: f32) -> (f32, f32) {
+        let sq = g * g;
+        let v_new = match self.start {
+            RmsStart::FirstGrad if v == 0.0 => sq,
+            _ => v * self.beta + sq * (1.0 - self.beta),
+        };
+        (v_new - v, g / (v_new.sqrt() + self.eps) * (-lr))
+    }
+
+    /// [`step_rows`](Self::step_rows) with the gradient on the host (`grad`,
+    /// `[rows.len(), cols]`), in one pass over each row of `param` and `avg`
+    /// (`util::rows_op::update_row_pairs`: in place on flex) and the same
+    /// numbers: the average gets `v_new - v` added, the row its step.
+    pub fn host_step_rows(
+        &self,
+        param: &mut Tensor<2>,
+        avg: &mut Tensor<2>,
+        rows: &[i32],
+        rows_t: &Tensor<1, Int>,
+        grad: &[f32],
+        lr: f32,
+    ) {
+        let cols = param.dims()[1];
+        assert_eq!(grad.len(), rows.len() * cols, "one gradient row per step row");
+        rows_op::update_row_pairs(avg, param, rows, rows_t, &|k, v, p| {
+            for ((v, p), &g) in v.iter_mut().zip(p.iter_mut()).zip(&grad[k * cols..(k + 1) * cols]) {
+                let (dv, step) = self.coordinate_step(*v, g, lr);
+                *v += dv;
+                *p += step;
+            }
         });
     }
 }

@@ -24,7 +24,7 @@ use crate::field::grid::{GridGeometry, RadianceGrid};
 use crate::field::host_fit::{self, FitBuffers};
 use crate::field::march::{BlockOccupancy, Marcher, SampleBatch};
 use crate::field::optim::{
-    RmsStart, Rmsprop, RowSubset, TvNorm, add_rows, add_tv_gradient_per_channel, log_lerp, total_variation,
+    RmsStart, Rmsprop, RowSubset, TvNorm, add_tv_gradient_per_channel, log_lerp, total_variation,
 };
 use crate::photo::config::TrainConfig;
 use crate::scene::camera::Ray;
@@ -32,7 +32,7 @@ use crate::scene::data::Dataset;
 use crate::util::backend::max_buffer_bytes;
 use crate::util::profile::StepProfile;
 use crate::util::rng::{Stream, step_rng};
-use crate::util::rows_op::read_rows;
+use crate::util::rows_op::read_rows_into;
 use crate::util::tensor::{floats, indices, scalar, select_rows, to_vec};
 use crate::util::transfer::human_bytes;
 
@@ -67,9 +67,24 @@ pub struct Trainer {
     subset: RowSubset,
     /// The plain-Rust gradient pass's buffers (reused between steps).
     fit_buffers: FitBuffers,
+    /// The host step's copies of its rows and corner indices (reused between steps).
+    step_buffers: StepBuffers,
     /// Wall time per part of a step (march, rows, gradient, update),
     /// summed over the steps since it was last cleared.
     pub profile: StepProfile,
+}
+
+/// The host step's working copies, kept from one step to the next: on
+/// fern's fine grid the SH rows alone are tens of MB, and fresh buffers
+/// every step cost more in page faults than the copies themselves.
+#[derive(Debug, Default)]
+struct StepBuffers {
+    /// The step rows' densities, `[rows]`.
+    density: Vec<f32>,
+    /// The step rows' SH coefficients, `[rows, 3 nb]`.
+    sh: Vec<f32>,
+    /// The step row of each corner of the batch.
+    corners: Vec<i32>,
 }
 
 /// Numbers of one optimisation step.
@@ -191,6 +206,7 @@ impl Trainer {
             occupancy: None,
             subset: RowSubset::default(),
             fit_buffers: FitBuffers::default(),
+            step_buffers: StepBuffers::default(),
             profile: StepProfile::default(),
         }
     }
@@ -303,18 +319,20 @@ impl Trainer {
         target: &[f32],
         profile: &StepProfile,
     ) -> f32 {
-        let plain = self.grid.device();
-        let (num_rows, stride) = (self.subset.rows().len(), 3 * self.grid.num_basis());
-        let (mse, mut fit) = profile.time("gradient", || {
-            let density: Vec<f32> = self.subset.rows().iter().map(|&r| self.grid.density_cpu[r as usize]).collect();
-            let sh = read_rows(&self.grid.sh, self.subset.rows(), rows_t);
-            let corners: Vec<i32> = batch.corner_rows.iter().map(|&r| self.subset.local(r)).collect();
+        let stride = 3 * self.grid.num_basis();
+        let (mse, mut grads) = profile.time("gradient", || {
+            let buf = &mut self.step_buffers;
+            buf.density.clear();
+            buf.density.extend(self.subset.rows().iter().map(|&r| self.grid.density_cpu[r as usize]));
+            read_rows_into(&self.grid.sh, self.subset.rows(), rows_t, &mut buf.sh);
+            buf.corners.clear();
+            buf.corners.extend(batch.corner_rows.iter().map(|&r| self.subset.local(r)));
             let mut fit = host_fit::mse_gradient(
-                &density,
-                &sh,
+                &buf.density,
+                &buf.sh,
                 self.grid.num_basis(),
                 batch,
-                &corners,
+                &buf.corners,
                 target,
                 self.background,
                 &mut self.fit_buffers,
@@ -324,7 +342,7 @@ impl Trainer {
                 let per_row = 1.0 / local.num_core as f32;
                 if o.tv_density > 0.0 {
                     add_tv_gradient_per_channel(
-                        &density,
+                        &buf.density,
                         1,
                         &local.neighbours,
                         o.tv_density * per_row,
@@ -332,30 +350,24 @@ impl Trainer {
                     );
                 }
                 if o.tv_sh > 0.0 {
-                    add_tv_gradient_per_channel(&sh, stride, &local.neighbours, o.tv_sh * per_row, &mut fit.sh);
+                    add_tv_gradient_per_channel(&buf.sh, stride, &local.neighbours, o.tv_sh * per_row, &mut fit.sh);
                 }
             }
-            (fit.mse as f32, (density, fit))
+            (fit.mse as f32, fit)
         });
         profile.time("update", || {
             let (lr_d, lr_s) = self.learning_rates();
             let rmsprop = self.rmsprop();
-            let (density, grads) = &mut fit;
             let rows = self.subset.rows();
-            let mut avg_d = read_rows(&self.state.density, rows, rows_t);
-            let mut avg_s = read_rows(&self.state.sh, rows, rows_t);
-            rmsprop.host_row_steps(&mut avg_d, &mut grads.density, lr_d);
-            rmsprop.host_row_steps(&mut avg_s, &mut grads.sh, lr_s);
-            for ((&r, old), step) in rows.iter().zip(density.iter()).zip(&grads.density) {
-                self.grid.density_cpu[r as usize] = old + step;
+            rmsprop.host_step_rows(&mut self.grid.density, &mut self.state.density, rows, rows_t, &grads.density, lr_d);
+            rmsprop.host_step_rows(&mut self.grid.sh, &mut self.state.sh, rows, rows_t, &grads.sh, lr_s);
+            // The host copy of the densities takes the rows' new values.
+            read_rows_into(&self.grid.density, rows, rows_t, &mut grads.density);
+            for (&r, &v) in rows.iter().zip(&grads.density) {
+                self.grid.density_cpu[r as usize] = v;
             }
-            add_rows(&mut self.state.density, rows, rows_t, floats(avg_d, [num_rows, 1], &plain));
-            add_rows(&mut self.state.sh, rows, rows_t, floats(avg_s, [num_rows, stride], &plain));
-            let steps_d = std::mem::take(&mut grads.density);
-            add_rows(&mut self.grid.density, rows, rows_t, floats(steps_d, [num_rows, 1], &plain));
-            let steps_s = std::mem::take(&mut grads.sh);
-            add_rows(&mut self.grid.sh, rows, rows_t, floats(steps_s, [num_rows, stride], &plain));
         });
+        self.fit_buffers.keep(grads);
         mse
     }
 

@@ -15,7 +15,7 @@ use crate::field::optim::{Rmsprop, RowSubset, TvNorm, total_variation};
 use crate::scene::sh;
 use crate::stylize::colour_transfer::ColourTransfer;
 use crate::util::chunk_ranges;
-use crate::util::tensor::{assign_rows, floats, indices, select_rows};
+use crate::util::tensor::{assign_rows, floats, indices, is_host_memory, select_rows, to_vec};
 
 /// The rows one optimiser step updates, and where each one's gradient sits
 /// in the step's gradient buffer: every row of the grid (dense; the buffer
@@ -176,13 +176,20 @@ impl StyleField {
     }
 
     /// One RMSprop step on the SH rows of `rows` (density untouched); `grad`
-    /// is the step's gradient buffer.
+    /// is the step's gradient buffer. A sparse step on the CPU backends
+    /// runs the fused host step (one pass over each row and its average),
+    /// the same numbers as the tensor step.
     pub fn rmsprop(&mut self, grad: Tensor<2>, rows: StepRows, lr: f32, opt: Rmsprop) {
         let ids = rows.touched_on_device(&self.grid.device());
         match (rows.touched, ids) {
             (Some(s), Some(ids)) => {
-                if !s.rows().is_empty() {
-                    opt.step_rows(&mut self.grid.sh, &mut self.rms, s.rows(), &ids, grad, lr);
+                let (sh, rms) = (&mut self.grid.sh, &mut self.rms);
+                match (s.rows().is_empty(), is_host_memory(&sh.device())) {
+                    (true, _) => {}
+                    (false, true) => opt.host_step_rows(sh, rms, s.rows(), &ids, &to_vec(grad), lr),
+                    (false, false) => {
+                        opt.step_rows(sh, rms, s.rows(), &ids, grad, lr);
+                    }
                 }
                 self.touched.set(s);
             }

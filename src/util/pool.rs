@@ -67,9 +67,17 @@ impl BufferPool {
 /// any machine. Each output chunk is written before it is read (see the
 /// module's note on zeroed buffers).
 pub fn sum_in_order(parts: &[&[f32]], len: usize) -> Vec<f32> {
+    let mut out = Vec::new();
+    sum_in_order_into(parts, len, &mut out);
+    out
+}
+
+/// [`sum_in_order`] into `out` (resized to `len`), a buffer the caller keeps.
+pub fn sum_in_order_into(parts: &[&[f32]], len: usize, out: &mut Vec<f32>) {
     const CHUNK: usize = 1 << 16;
     assert!(!parts.is_empty() && parts.iter().all(|p| p.len() == len), "parts of {len} values");
-    let mut out = vec![0.0f32; len];
+    out.clear();
+    out.resize(len, 0.0);
     out.par_chunks_mut(CHUNK).enumerate().for_each(|(c, chunk)| {
         let range = c * CHUNK..c * CHUNK + chunk.len();
         chunk.copy_from_slice(&parts[0][range.clone()]);
@@ -77,7 +85,6 @@ pub fn sum_in_order(parts: &[&[f32]], len: usize) -> Vec<f32> {
             chunk.iter_mut().zip(&part[range.clone()]).for_each(|(a, b)| *a += b);
         }
     });
-    out
 }
 
 #[cfg(test)]

@@ -45,6 +45,20 @@ mod host_op {
         /// `tensor` with `values` (`[rows.len(), cols]`) added to its rows
         /// `rows` (a repeated row gets each addition, in order).
         fn add_to_rows(tensor: FloatTensor<Self>, rows: &[i32], values: FloatTensor<Self>) -> FloatTensor<Self>;
+        /// Writes `tensor`'s rows `rows`, in that order, into `out`
+        /// (`[rows.len(), cols]`): a gather into a buffer the caller keeps.
+        /// Returns the number of values written (extension operations
+        /// return a value).
+        fn read_rows_into(tensor: &FloatTensor<Self>, rows: &[i32], out: &mut [f32]) -> usize;
+        /// `a` and `b` (two tensors of the same shape) after `update(k, a_row,
+        /// b_row)` on their rows `rows[k]`, for every `k` (a repeated row
+        /// gets each update, in order).
+        fn update_row_pairs(
+            a: FloatTensor<Self>,
+            b: FloatTensor<Self>,
+            rows: &[i32],
+            update: &super::RowPairUpdate,
+        ) -> (FloatTensor<Self>, FloatTensor<Self>);
     }
 
     #[cfg(feature = "flex")]
@@ -74,6 +88,42 @@ mod host_op {
             super::kernel::add(&mut tensor.storage_mut::<f32>()[start..start + len], cols, rows, values);
             tensor
         }
+
+        fn read_rows_into(tensor: &FloatTensor<Self>, rows: &[i32], out: &mut [f32]) -> usize {
+            if !(tensor.dtype() == DType::F32 && tensor.is_contiguous()) {
+                return generic_read_into::<Self>(tensor, rows, out);
+            }
+            let cols = tensor.shape()[1];
+            let (start, len) = (tensor.layout().start_offset(), tensor.layout().num_elements());
+            super::kernel::gather_into(&tensor.storage::<f32>()[start..start + len], cols, rows, out);
+            out.len()
+        }
+
+        fn update_row_pairs(
+            a: FloatTensor<Self>,
+            b: FloatTensor<Self>,
+            rows: &[i32],
+            update: &super::RowPairUpdate,
+        ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+            let in_place = |t: &FloatTensor<Self>| {
+                t.dtype() == DType::F32 && t.is_unique() && t.layout().is_dense_unique_storage()
+            };
+            if !(in_place(&a) && in_place(&b) && a.shape() == b.shape()) {
+                return generic_update_pairs::<Self>(a, b, rows, update);
+            }
+            let (mut a, mut b) = (a, b);
+            let cols = a.shape()[1];
+            let (start_a, len) = (a.layout().start_offset(), a.layout().num_elements());
+            let start_b = b.layout().start_offset();
+            super::kernel::update_pairs(
+                &mut a.storage_mut::<f32>()[start_a..start_a + len],
+                &mut b.storage_mut::<f32>()[start_b..start_b + len],
+                cols,
+                rows,
+                update,
+            );
+            (a, b)
+        }
     }
 
     #[cfg(feature = "ndarray")]
@@ -84,6 +134,19 @@ mod host_op {
 
         fn add_to_rows(tensor: FloatTensor<Self>, rows: &[i32], values: FloatTensor<Self>) -> FloatTensor<Self> {
             generic_add::<Self>(tensor, rows, values)
+        }
+
+        fn read_rows_into(tensor: &FloatTensor<Self>, rows: &[i32], out: &mut [f32]) -> usize {
+            generic_read_into::<Self>(tensor, rows, out)
+        }
+
+        fn update_row_pairs(
+            a: FloatTensor<Self>,
+            b: FloatTensor<Self>,
+            rows: &[i32],
+            update: &super::RowPairUpdate,
+        ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+            generic_update_pairs::<Self>(a, b, rows, update)
         }
     }
 
@@ -102,6 +165,47 @@ mod host_op {
         let device = tensor.device();
         let op = burn::tensor::IndexingUpdateOp::Add;
         B::float_select_assign(tensor, 0, row_indices::<B>(rows, &device), values, op)
+    }
+
+    /// A CPU backend's tensor as f32 values.
+    fn host_values<B: Backend>(tensor: FloatTensor<B>) -> Vec<f32> {
+        let data = burn::tensor::read_sync(B::float_into_data(tensor)).expect("reading a CPU backend's tensor");
+        data.convert::<f32>().try_into_vec::<f32>().expect("f32 values after conversion")
+    }
+
+    /// Burn's own `select`, read into `out`.
+    fn generic_read_into<B: Backend>(tensor: &FloatTensor<B>, rows: &[i32], out: &mut [f32]) -> usize {
+        out.copy_from_slice(&host_values::<B>(generic_gather::<B>(tensor.clone(), rows)));
+        out.len()
+    }
+
+    /// The rows read out, updated on the host and written back with Burn's
+    /// `select_assign` (`Assign`).
+    fn generic_update_pairs<B: Backend>(
+        a: FloatTensor<B>,
+        b: FloatTensor<B>,
+        rows: &[i32],
+        update: &super::RowPairUpdate,
+    ) -> (FloatTensor<B>, FloatTensor<B>) {
+        let device = a.device();
+        let cols = a.shape()[1];
+        assert_eq!(a.shape(), b.shape(), "row pairs of two tensors of one shape");
+        let mut va = host_values::<B>(generic_gather::<B>(a.clone(), rows));
+        let mut vb = host_values::<B>(generic_gather::<B>(b.clone(), rows));
+        for (k, (ra, rb)) in va.chunks_exact_mut(cols.max(1)).zip(vb.chunks_exact_mut(cols.max(1))).enumerate() {
+            update(k, ra, rb);
+        }
+        let assign = |t: FloatTensor<B>, values: Vec<f32>| {
+            let values = B::float_from_data(burn::tensor::TensorData::new(values, [rows.len(), cols]), &device);
+            B::float_select_assign(
+                t,
+                0,
+                row_indices::<B>(rows, &device),
+                values,
+                burn::tensor::IndexingUpdateOp::Assign,
+            )
+        };
+        (assign(a, va), assign(b, vb))
     }
 
     #[cfg(feature = "flex")]
@@ -127,15 +231,21 @@ mod kernel {
 
     /// Rows `rows` of a `[n, cols]` slice.
     pub fn gather(source: &[f32], cols: usize, rows: &[i32]) -> Vec<f32> {
-        let n = source.len() / cols.max(1);
         let mut out = vec![0.0f32; rows.len() * cols];
+        gather_into(source, cols, rows, &mut out);
+        out
+    }
+
+    /// Rows `rows` of a `[n, cols]` slice, written into `out` (`[rows.len(), cols]`).
+    pub fn gather_into(source: &[f32], cols: usize, rows: &[i32], out: &mut [f32]) {
+        let n = source.len() / cols.max(1);
+        assert_eq!(out.len(), rows.len() * cols, "one output row per index");
         out.par_chunks_mut(GATHER_PIECE * cols.max(1)).enumerate().for_each(|(p, piece)| {
             for (dst, &r) in piece.chunks_exact_mut(cols).zip(&rows[p * GATHER_PIECE..]) {
                 let r = checked(r, n);
                 dst.copy_from_slice(&source[r * cols..(r + 1) * cols]);
             }
         });
-        out
     }
 
     /// Adds `values` (`[rows.len(), cols]`) to rows `rows` of `target` (`[n, cols]`).
@@ -160,11 +270,39 @@ mod kernel {
         });
     }
 
+    /// `update(k, a_row, b_row)` on rows `rows[k]` of `a` and `b` (both
+    /// `[n, cols]`), in place. Split as [`add`]: each piece of rows gets the
+    /// indices in its range, in their order (bucketed once, not scanned
+    /// per piece).
+    pub fn update_pairs(a: &mut [f32], b: &mut [f32], cols: usize, rows: &[i32], update: &super::RowPairUpdate) {
+        let n = a.len() / cols.max(1);
+        assert_eq!(a.len(), b.len(), "row pairs of two tensors of one shape");
+        let rows_per_piece = n.div_ceil(ADD_PIECES).max(1);
+        let mut buckets: Vec<Vec<u32>> = vec![Vec::new(); n.div_ceil(rows_per_piece)];
+        for (k, &r) in rows.iter().enumerate() {
+            buckets[checked(r, n) / rows_per_piece].push(k as u32);
+        }
+        let piece = rows_per_piece * cols.max(1);
+        a.par_chunks_mut(piece).zip(b.par_chunks_mut(piece)).zip(&buckets).enumerate().for_each(
+            |(p, ((pa, pb), ks))| {
+                let first = p * rows_per_piece;
+                for &k in ks {
+                    let at = (rows[k as usize] as usize - first) * cols;
+                    update(k as usize, &mut pa[at..at + cols], &mut pb[at..at + cols]);
+                }
+            },
+        );
+    }
+
     fn checked(r: i32, n: usize) -> usize {
         assert!(r >= 0 && (r as usize) < n, "row {r} out of range for {n} rows");
         r as usize
     }
 }
+
+/// What [`update_row_pairs`] does to one row pair: `(k, a_row, b_row)`,
+/// `k` the row's position in the index list.
+pub type RowPairUpdate<'a> = dyn Fn(usize, &mut [f32], &mut [f32]) + Sync + 'a;
 
 /// Rows `rows` of `tensor`, in that order (`rows_t` holds the same indices
 /// as a tensor, for the backends that gather through Burn's `select`).
@@ -181,6 +319,57 @@ pub fn gather_rows(tensor: &Tensor<2>, rows: &[i32], rows_t: &Tensor<1, Int>) ->
 /// [`gather_rows`] as host values (`[rows.len(), cols]`, row-major).
 pub fn read_rows(tensor: &Tensor<2>, rows: &[i32], rows_t: &Tensor<1, Int>) -> Vec<f32> {
     to_vec(gather_rows(tensor, rows, rows_t))
+}
+
+/// [`read_rows`] into `out` (cleared and resized to `[rows.len(), cols]`),
+/// a buffer the caller keeps from step to step: on fern's fine grid a
+/// fresh one is tens of MB of page faults a step.
+pub fn read_rows_into(tensor: &Tensor<2>, rows: &[i32], rows_t: &Tensor<1, Int>, out: &mut Vec<f32>) {
+    out.clear();
+    out.resize(rows.len() * tensor.dims()[1], 0.0);
+    #[cfg(any(feature = "flex", feature = "ndarray"))]
+    if is_host_memory(&tensor.device()) {
+        let t = tensor.clone().into_dispatch();
+        <burn::backend::Dispatch as RowsBackend>::read_rows_into(&t, rows, out);
+        return;
+    }
+    out.copy_from_slice(&read_rows(tensor, rows, rows_t));
+}
+
+/// Applies `update(k, a_row, b_row)` to rows `rows[k]` of `a` and `b` (two
+/// tensors of one shape; `rows_t` the same indices as a tensor): in place
+/// and in parallel on flex, by reading the rows out and assigning them back
+/// elsewhere. The optimisers' fused row step: one pass over the rows of a
+/// parameter and its running average instead of a gather and two row-adds.
+pub fn update_row_pairs(
+    a: &mut Tensor<2>,
+    b: &mut Tensor<2>,
+    rows: &[i32],
+    rows_t: &Tensor<1, Int>,
+    update: &RowPairUpdate,
+) {
+    let device = a.device();
+    let placeholder = || Tensor::<2>::zeros([1, 1], &device);
+    let (ta, tb) = (std::mem::replace(a, placeholder()), std::mem::replace(b, placeholder()));
+    #[cfg(any(feature = "flex", feature = "ndarray"))]
+    if is_host_memory(&device) {
+        let (ra, rb) = <burn::backend::Dispatch as RowsBackend>::update_row_pairs(
+            ta.into_dispatch(),
+            tb.into_dispatch(),
+            rows,
+            update,
+        );
+        (*a, *b) = (Tensor::from_dispatch(ra), Tensor::from_dispatch(rb));
+        return;
+    }
+    let cols = ta.dims()[1];
+    let (mut va, mut vb) = (read_rows(&ta, rows, rows_t), read_rows(&tb, rows, rows_t));
+    for (k, (ra, rb)) in va.chunks_exact_mut(cols.max(1)).zip(vb.chunks_exact_mut(cols.max(1))).enumerate() {
+        update(k, ra, rb);
+    }
+    let values = |v: Vec<f32>| Tensor::<2>::from_data(burn::tensor::TensorData::new(v, [rows.len(), cols]), &device);
+    *a = assign_rows(ta, rows_t.clone(), values(va), IndexingUpdateOp::Assign);
+    *b = assign_rows(tb, rows_t.clone(), values(vb), IndexingUpdateOp::Assign);
 }
 
 /// `tensor` with `values` added to its rows `rows` (`rows_t` the same
@@ -220,6 +409,28 @@ mod tests {
             }
         }
         assert_eq!(fast, slow);
+    }
+
+    #[test]
+    fn row_pair_updates_on_host_slices_match_the_definition() {
+        let (n, cols) = (1000, 3);
+        let a0: Vec<f32> = (0..n * cols).map(|i| i as f32).collect();
+        let b0: Vec<f32> = (0..n * cols).map(|i| (i % 17) as f32).collect();
+        // Repeated rows (3000 indices into 1000 rows) get every update, in order.
+        let rows: Vec<i32> = (0..3000).map(|i| ((i * 7919) % n) as i32).collect();
+        let update = |k: usize, a: &mut [f32], b: &mut [f32]| {
+            for (x, y) in a.iter_mut().zip(b.iter_mut()) {
+                (*x, *y) = (*x * 0.5 + *y + k as f32, *y - 1.0);
+            }
+        };
+        let (mut fast_a, mut fast_b) = (a0.clone(), b0.clone());
+        kernel::update_pairs(&mut fast_a, &mut fast_b, cols, &rows, &update);
+        let (mut slow_a, mut slow_b) = (a0, b0);
+        for (k, &r) in rows.iter().enumerate() {
+            let at = r as usize * cols..(r as usize + 1) * cols;
+            update(k, &mut slow_a[at.clone()], &mut slow_b[at]);
+        }
+        assert_eq!((fast_a, fast_b), (slow_a, slow_b));
     }
 
     #[test]
