@@ -16,6 +16,7 @@ use anyhow::{Result, bail};
 use burn::tensor::{Device, Int, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
 use std::path::Path;
 
 use crate::field::checkpoint::{self, CheckpointMeta};
@@ -322,11 +323,14 @@ impl Trainer {
         let stride = 3 * self.grid.num_basis();
         let (mse, mut grads) = profile.time("gradient", || {
             let buf = &mut self.step_buffers;
+            // Random reads of the grid-sized density mirror and row map: in
+            // parallel (order kept, so the same values).
+            let (density_cpu, subset) = (&self.grid.density_cpu, &self.subset);
             buf.density.clear();
-            buf.density.extend(self.subset.rows().iter().map(|&r| self.grid.density_cpu[r as usize]));
-            read_rows_into(&self.grid.sh, self.subset.rows(), rows_t, &mut buf.sh);
+            buf.density.par_extend(subset.rows().par_iter().with_min_len(1 << 14).map(|&r| density_cpu[r as usize]));
+            read_rows_into(&self.grid.sh, subset.rows(), rows_t, &mut buf.sh);
             buf.corners.clear();
-            buf.corners.extend(batch.corner_rows.iter().map(|&r| self.subset.local(r)));
+            buf.corners.par_extend(batch.corner_rows.par_iter().with_min_len(1 << 14).map(|&r| subset.local(r)));
             let mut fit = host_fit::mse_gradient(
                 &buf.density,
                 &buf.sh,
