@@ -176,15 +176,16 @@ impl StyleField {
     }
 
     /// One RMSprop step on the SH rows of `rows` (density untouched); `grad`
-    /// is the step's gradient buffer. A sparse step on the CPU backends
-    /// runs the fused host step (one pass over each row and its average),
-    /// the same numbers as the tensor step.
-    pub fn rmsprop(&mut self, grad: Tensor<2>, rows: StepRows, lr: f32, opt: Rmsprop) {
+    /// is the step's gradient buffer. With `host` (the run's ray kernel is
+    /// the host pass: CPU backends) a sparse step runs the fused host step
+    /// (one pass over each row and its average), the same numbers as the
+    /// tensor step, which stays the graph path's (a GPU's: no read-back).
+    pub fn rmsprop(&mut self, grad: Tensor<2>, rows: StepRows, lr: f32, opt: Rmsprop, host: bool) {
         let ids = rows.touched_on_device(&self.grid.device());
         match (rows.touched, ids) {
             (Some(s), Some(ids)) => {
                 let (sh, rms) = (&mut self.grid.sh, &mut self.rms);
-                match (s.rows().is_empty(), is_host_memory(&sh.device())) {
+                match (s.rows().is_empty(), host && is_host_memory(&sh.device())) {
                     (true, _) => {}
                     (false, true) => opt.host_step_rows(sh, rms, s.rows(), &ids, &to_vec(grad), lr),
                     (false, false) => {

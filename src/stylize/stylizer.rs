@@ -584,7 +584,8 @@ impl<'a> Stylizer<'a> {
     fn optimiser_step(&mut self, grad: Tensor<2>, rows: StepRows, lr: f32) {
         let s = &self.cfg.schedule;
         let opt = Rmsprop { beta: s.rmsprop_beta, eps: s.eps, start: self.cfg.optim.rms_init };
-        self.field.rmsprop(grad, rows, lr, opt);
+        let host = self.host_kernel();
+        self.field.rmsprop(grad, rows, lr, opt, host);
         self.optimiser_steps += 1;
     }
 
