@@ -76,8 +76,7 @@ mod host_op {
         fn add_to_rows(tensor: FloatTensor<Self>, rows: &[i32], values: FloatTensor<Self>) -> FloatTensor<Self> {
             let mut tensor = tensor;
             let cols = tensor.shape()[1];
-            let in_place =
-                tensor.dtype() == DType::F32 && tensor.is_unique() && tensor.layout().is_dense_unique_storage();
+            let in_place = writable_in_place(&tensor);
             let values_f32 = values.dtype() == DType::F32 && values.is_contiguous();
             if !(in_place && values_f32) {
                 return generic_add::<Self>(tensor, rows, values);
@@ -105,10 +104,7 @@ mod host_op {
             rows: &[i32],
             update: &super::RowPairUpdate,
         ) -> (FloatTensor<Self>, FloatTensor<Self>) {
-            let in_place = |t: &FloatTensor<Self>| {
-                t.dtype() == DType::F32 && t.is_unique() && t.layout().is_dense_unique_storage()
-            };
-            if !(in_place(&a) && in_place(&b) && a.shape() == b.shape()) {
+            if !(writable_in_place(&a) && writable_in_place(&b) && a.shape() == b.shape()) {
                 return generic_update_pairs::<Self>(a, b, rows, update);
             }
             let (mut a, mut b) = (a, b);
@@ -124,6 +120,13 @@ mod host_op {
             );
             (a, b)
         }
+    }
+
+    /// Whether flex's tensor is f32 and its storage ours alone, so that its
+    /// rows can be written in place.
+    #[cfg(feature = "flex")]
+    fn writable_in_place(t: &FloatTensor<Flex>) -> bool {
+        t.dtype() == DType::F32 && t.is_unique() && t.layout().is_dense_unique_storage()
     }
 
     #[cfg(feature = "ndarray")]
