@@ -28,7 +28,7 @@ use crate::field::relu;
 
 use crate::field::host_render::sample_values;
 use crate::field::march::SampleBatch;
-use crate::util::pool::sum_in_order_into;
+use crate::util::pool::add_in_order;
 
 /// Parts the rays are split into, each with its own gradient buffers
 /// (`rows * (1 + 3 num_basis)` values each: few, as SH degree 2 has 28
@@ -48,20 +48,20 @@ pub struct FitGradient {
 
 /// The parts' gradient buffers, kept from one step to the next by the
 /// trainer: on fern's fine grid they hold tens of MB per part, and fresh
-/// ones every step were half of the step (see `util::pool`).
+/// ones every step were half of the step (see `util::pool`). The other
+/// parts are added into the first part's buffers, which a `FitGradient`
+/// then carries out and [`FitBuffers::keep`] gives back.
 #[derive(Debug, Default)]
 pub struct FitBuffers {
     parts: Vec<PartBuffers>,
-    /// The summed gradients' allocations, handed out in a `FitGradient`
-    /// and given back with [`FitBuffers::keep`].
-    density: Vec<f32>,
-    sh: Vec<f32>,
 }
 
 impl FitBuffers {
     /// Takes back a step's gradient buffers for the next step.
     pub fn keep(&mut self, grad: FitGradient) {
-        (self.density, self.sh) = (grad.density, grad.sh);
+        if let Some(first) = self.parts.first_mut() {
+            (first.density, first.sh) = (grad.density, grad.sh);
+        }
     }
 }
 
@@ -128,15 +128,16 @@ pub fn mse_gradient(
             squared
         })
         .collect();
-    let parts = &buffers.parts[..num_parts];
-    let density: Vec<&[f32]> = parts.iter().map(|p| &p.density[..]).collect();
-    let sh: Vec<&[f32]> = parts.iter().map(|p| &p.sh[..]).collect();
-    sum_in_order_into(&density, rows, &mut buffers.density);
-    sum_in_order_into(&sh, rows * stride, &mut buffers.sh);
+    // The sum in part order, into the first part's buffers.
+    let (first, rest) = buffers.parts[..num_parts].split_first_mut().expect("at least one part");
+    let density: Vec<&[f32]> = rest.iter().map(|p| &p.density[..]).collect();
+    let sh: Vec<&[f32]> = rest.iter().map(|p| &p.sh[..]).collect();
+    add_in_order(&mut first.density, &density);
+    add_in_order(&mut first.sh, &sh);
     FitGradient {
         mse: squared.iter().sum::<f64>() / (3 * n.max(1)) as f64,
-        density: std::mem::take(&mut buffers.density),
-        sh: std::mem::take(&mut buffers.sh),
+        density: std::mem::take(&mut first.density),
+        sh: std::mem::take(&mut first.sh),
     }
 }
 

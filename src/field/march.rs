@@ -78,6 +78,20 @@ pub struct SampleBatch {
 }
 
 impl SampleBatch {
+    /// No rays, the allocations kept.
+    fn clear(&mut self) {
+        self.num_rays = 0;
+        self.ray_offsets.clear();
+        self.ray_offsets.push(0);
+        self.corner_rows.clear();
+        self.corner_weights.clear();
+        self.colour_weights.clear();
+        self.t.clear();
+        self.delta.clear();
+        self.basis.clear();
+        self.threshold_depth.clear();
+    }
+
     pub fn num_samples(&self) -> usize {
         self.t.len()
     }
@@ -459,8 +473,28 @@ impl<'a> Marcher<'a> {
     /// the pieces are appended in ray order, so the batch does not depend
     /// on the thread count.
     pub fn samples(&self, rays: &[Ray], params: &MarchParams) -> SampleBatch {
-        let pieces: Vec<SampleBatch> = rays.par_chunks(RAYS_PER_TASK).map(|part| self.pack(part, params)).collect();
-        let mut b = SampleBatch { num_rays: 0, ray_offsets: vec![0], ..Default::default() };
+        let mut batch = SampleBatch::default();
+        self.samples_into(rays, params, &mut Vec::new(), &mut batch);
+        batch
+    }
+
+    /// [`samples`](Self::samples) into `batch`, with the tasks' pieces in
+    /// `pieces`: both kept by a caller that marches every step (the
+    /// training step), whose batches of tens of MB would otherwise be
+    /// fresh pages, zeroed by the kernel, every step.
+    pub fn samples_into(
+        &self,
+        rays: &[Ray],
+        params: &MarchParams,
+        pieces: &mut Vec<SampleBatch>,
+        batch: &mut SampleBatch,
+    ) {
+        pieces.resize_with(rays.len().div_ceil(RAYS_PER_TASK), SampleBatch::default);
+        pieces.par_iter_mut().zip(rays.par_chunks(RAYS_PER_TASK)).for_each(|(piece, part)| {
+            self.pack_into(part, params, piece);
+        });
+        let b = batch;
+        b.clear();
         let total: usize = pieces.iter().map(SampleBatch::num_samples).sum();
         b.ray_offsets.reserve(rays.len());
         b.threshold_depth.reserve(rays.len());
@@ -470,7 +504,7 @@ impl<'a> Marcher<'a> {
         b.t.reserve(total);
         b.delta.reserve(total);
         b.basis.reserve(total * self.grid.num_basis());
-        for piece in pieces {
+        for piece in pieces.iter() {
             let base = b.t.len() as u32;
             b.ray_offsets.extend(piece.ray_offsets[1..].iter().map(|o| o + base));
             b.corner_rows.extend_from_slice(&piece.corner_rows);
@@ -482,14 +516,14 @@ impl<'a> Marcher<'a> {
             b.threshold_depth.extend_from_slice(&piece.threshold_depth);
             b.num_rays += piece.num_rays;
         }
-        b
     }
 
-    /// Marches `rays` one after another into one batch.
-    fn pack(&self, rays: &[Ray], params: &MarchParams) -> SampleBatch {
+    /// Marches `rays` one after another into `b` (emptied first).
+    fn pack_into(&self, rays: &[Ray], params: &MarchParams, b: &mut SampleBatch) {
         let grid = self.grid;
         let mut basis = vec![0.0f32; grid.num_basis()];
-        let mut b = SampleBatch { num_rays: rays.len(), ray_offsets: vec![0], ..Default::default() };
+        b.clear();
+        b.num_rays = rays.len();
         for ray in rays {
             sh::eval_basis(grid.sh_degree, ray.view_dir, &mut basis);
             let depth = self.walk(ray, params, |s| {
@@ -503,7 +537,6 @@ impl<'a> Marcher<'a> {
             b.threshold_depth.push(depth);
             b.ray_offsets.push(b.t.len() as u32);
         }
-        b
     }
 
     /// Marches one ray and hands each of its samples, front to back, to
@@ -646,6 +679,26 @@ mod tests {
         assert_eq!(a.threshold_depth, b.threshold_depth);
         assert_eq!(skipping.depths(rays, params), a.threshold_depth);
         a.num_samples()
+    }
+
+    /// A batch marched into kept buffers (after a larger batch, whose
+    /// pieces and values they still hold) is the fresh batch.
+    #[test]
+    fn a_batch_in_kept_buffers_is_a_fresh_one() {
+        let device = crate::util::backend::BackendKind::Flex.device();
+        let grid = crate::field::grid::sphere_grid(40, &device);
+        let marcher = Marcher::new(&grid);
+        let params = MarchParams::default();
+        let (first, second) = (view_rays(Vec3::new(2.2, 1.0, 0.8)), view_rays(Vec3::new(-1.5, 2.0, 0.6)));
+        let (mut pieces, mut kept) = (Vec::new(), SampleBatch::default());
+        marcher.samples_into(&first, &params, &mut pieces, &mut kept);
+        marcher.samples_into(&second[..700], &params, &mut pieces, &mut kept);
+        let fresh = marcher.samples(&second[..700], &params);
+        assert!(fresh.num_samples() > 1000 && pieces.len() == 3);
+        assert_eq!((kept.num_rays, &kept.ray_offsets), (fresh.num_rays, &fresh.ray_offsets));
+        assert_eq!((&kept.corner_rows, &kept.corner_weights), (&fresh.corner_rows, &fresh.corner_weights));
+        assert_eq!((&kept.colour_weights, &kept.basis), (&fresh.colour_weights, &fresh.basis));
+        assert_eq!((&kept.t, &kept.delta, &kept.threshold_depth), (&fresh.t, &fresh.delta, &fresh.threshold_depth));
     }
 
     /// Skipping empty blocks must give exactly the samples of a march that

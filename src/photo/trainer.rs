@@ -70,6 +70,9 @@ pub struct Trainer {
     fit_buffers: FitBuffers,
     /// The host step's copies of its rows and corner indices (reused between steps).
     step_buffers: StepBuffers,
+    /// The step's batch of samples and the march tasks' pieces of it (reused between steps).
+    batch: SampleBatch,
+    march_pieces: Vec<SampleBatch>,
     /// Wall time per part of a step (march, rows, gradient, update),
     /// summed over the steps since it was last cleared.
     pub profile: StepProfile,
@@ -208,6 +211,8 @@ impl Trainer {
             subset: RowSubset::default(),
             fit_buffers: FitBuffers::default(),
             step_buffers: StepBuffers::default(),
+            batch: SampleBatch::default(),
+            march_pieces: Vec::new(),
             profile: StepProfile::default(),
         }
     }
@@ -251,9 +256,15 @@ impl Trainer {
         let target: Vec<f32> = picks.iter().flat_map(|&i| self.colours[i]).collect();
 
         let profile = std::mem::take(&mut self.profile);
-        let batch = profile.time("march", || {
+        let mut batch = std::mem::take(&mut self.batch);
+        profile.time("march", || {
             let occupancy = self.occupancy.get_or_insert_with(|| BlockOccupancy::of(&self.grid));
-            Marcher::with_occupancy(&self.grid, occupancy).samples(&rays, &cfg.march)
+            Marcher::with_occupancy(&self.grid, occupancy).samples_into(
+                &rays,
+                &cfg.march,
+                &mut self.march_pieces,
+                &mut batch,
+            );
         });
         check_buffer_limit(&batch, self.grid.num_basis(), &plain)?;
         let (local, rows_t) = profile.time("rows", || {
@@ -266,12 +277,14 @@ impl Trainer {
         };
         self.profile = profile;
         self.step += 1;
-        Ok(StepStats {
+        let stats = StepStats {
             mse: mse_value,
             samples: batch.num_samples(),
             max_samples_per_ray: batch.max_samples_per_ray(),
             rows: self.subset.rows().len(),
-        })
+        };
+        self.batch = batch;
+        Ok(stats)
     }
 
     /// The RMSprop optimiser of this run.

@@ -64,24 +64,25 @@ impl BufferPool {
 
 /// The element-wise sum of `parts` (at least one, each `len` long), added
 /// in part order whatever the threads, so the result is the same bits on
-/// any machine. Each output chunk is written before it is read (see the
-/// module's note on zeroed buffers).
+/// any machine.
 pub fn sum_in_order(parts: &[&[f32]], len: usize) -> Vec<f32> {
-    let mut out = Vec::new();
-    sum_in_order_into(parts, len, &mut out);
+    assert!(!parts.is_empty() && parts[0].len() == len, "parts of {len} values");
+    let mut out = parts[0].to_vec();
+    add_in_order(&mut out, &parts[1..]);
     out
 }
 
-/// [`sum_in_order`] into `out` (resized to `len`), a buffer the caller keeps.
-pub fn sum_in_order_into(parts: &[&[f32]], len: usize, out: &mut Vec<f32>) {
+/// Adds `rest` to `first` element-wise, in part order (in parallel over
+/// chunks of elements, each element's additions in order): `first` ends
+/// as [`sum_in_order`] of `first` and `rest`, the same bits, without an
+/// output buffer and its copy of `first`.
+pub fn add_in_order(first: &mut [f32], rest: &[&[f32]]) {
     const CHUNK: usize = 1 << 16;
-    assert!(!parts.is_empty() && parts.iter().all(|p| p.len() == len), "parts of {len} values");
-    out.clear();
-    out.resize(len, 0.0);
-    out.par_chunks_mut(CHUNK).enumerate().for_each(|(c, chunk)| {
+    let len = first.len();
+    assert!(rest.iter().all(|p| p.len() == len), "parts of {len} values");
+    first.par_chunks_mut(CHUNK).enumerate().for_each(|(c, chunk)| {
         let range = c * CHUNK..c * CHUNK + chunk.len();
-        chunk.copy_from_slice(&parts[0][range.clone()]);
-        for part in &parts[1..] {
+        for part in rest {
             chunk.iter_mut().zip(&part[range.clone()]).for_each(|(a, b)| *a += b);
         }
     });
@@ -119,5 +120,8 @@ mod tests {
         for i in (0..len).step_by(997) {
             assert_eq!(sum[i], (a[i] + b[i]) + c[i], "{i}");
         }
+        let mut in_place = a.clone();
+        add_in_order(&mut in_place, &[&b, &c]);
+        assert_eq!(in_place, sum, "adding into the first part gives the same bits");
     }
 }
