@@ -70,9 +70,8 @@ pub struct Trainer {
     fit_buffers: FitBuffers,
     /// The host step's copies of its rows and corner indices (reused between steps).
     step_buffers: StepBuffers,
-    /// The step's batch of samples and the march tasks' pieces of it (reused between steps).
+    /// The step's batch of samples (reused between steps).
     batch: SampleBatch,
-    march_pieces: Vec<SampleBatch>,
     /// Wall time per part of a step (march, rows, gradient, update),
     /// summed over the steps since it was last cleared.
     pub profile: StepProfile,
@@ -212,7 +211,6 @@ impl Trainer {
             fit_buffers: FitBuffers::default(),
             step_buffers: StepBuffers::default(),
             batch: SampleBatch::default(),
-            march_pieces: Vec::new(),
             profile: StepProfile::default(),
         }
     }
@@ -259,12 +257,7 @@ impl Trainer {
         let mut batch = std::mem::take(&mut self.batch);
         profile.time("march", || {
             let occupancy = self.occupancy.get_or_insert_with(|| BlockOccupancy::of(&self.grid));
-            Marcher::with_occupancy(&self.grid, occupancy).samples_into(
-                &rays,
-                &cfg.march,
-                &mut self.march_pieces,
-                &mut batch,
-            );
+            Marcher::with_occupancy(&self.grid, occupancy).samples_into(&rays, &cfg.march, &mut batch);
         });
         check_buffer_limit(&batch, self.grid.num_basis(), &plain)?;
         let (local, rows_t) = profile.time("rows", || {
