@@ -481,9 +481,10 @@ impl<'a> Marcher<'a> {
     /// [`samples`](Self::samples) into `batch`, a buffer kept by a caller
     /// that marches every step (the training step), whose batches of tens
     /// of MB would otherwise be fresh pages, zeroed by the kernel, every
-    /// step. The tasks' pieces stay fresh: kept, they held about 0.5 GB
-    /// more at the peak of a fern fit (the allocator's per-thread arenas
-    /// could no longer give memory back) for 5 ms less a step.
+    /// step. The tasks' pieces stay fresh: kept too, they cost about
+    /// 0.5 GB more at the peak of a short fern fit (measured; why, not
+    /// traced: perhaps the allocator's per-thread arenas) for 5 ms less a
+    /// step.
     pub fn samples_into(&self, rays: &[Ray], params: &MarchParams, batch: &mut SampleBatch) {
         let pieces: Vec<SampleBatch> = rays.par_chunks(RAYS_PER_TASK).map(|part| self.pack(part, params)).collect();
         let b = batch;
