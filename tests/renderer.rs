@@ -249,9 +249,18 @@ fn host_fit_gradient_matches_autodiff() {
         refnpr::field::host_fit::mse_gradient(&step_dens, &step_sh, nb, &batch, &corners, target, bg, buffers)
     };
     // The buffers a trainer keeps between steps: a previous step's gradients
-    // left in them must not leak into the next.
+    // left in them must not leak into the next, whether it had more step
+    // rows (here 70 more, the step rows in another order) or the same.
     let mut buffers = Default::default();
-    let first = fit(&target.iter().rev().copied().collect::<Vec<_>>(), &mut buffers);
+    let more = n + 70;
+    let (more_dens, more_sh) = (vec![0.3f32; more], vec![0.1f32; more * 3 * nb]);
+    let shifted: Vec<i32> = corners.iter().map(|&r| (r + 70) % more as i32).collect();
+    let reversed: Vec<f32> = target.iter().rev().copied().collect();
+    let earlier =
+        refnpr::field::host_fit::mse_gradient(&more_dens, &more_sh, nb, &batch, &shifted, &reversed, bg, &mut buffers);
+    buffers.keep(earlier);
+    let first = fit(&reversed, &mut buffers);
+    buffers.keep(first.clone());
     let host = fit(&target, &mut buffers);
     let fresh = fit(&target, &mut Default::default());
     assert!(first.sh != host.sh, "a different target gives different gradients");

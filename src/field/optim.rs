@@ -184,6 +184,15 @@ pub fn add_tv_gradient_per_channel(
     let num_core = neighbours[0].len();
     let mut diffs = [0.0f32; 3];
     for i in 0..num_core {
+        // The neighbours are rows anywhere in the step: ask for the rows of
+        // a later centre now (the loop over channels is too long for the
+        // processor to reach the next centre's loads by itself).
+        if let Some(ahead) = (i + rows_op::PREFETCH_AHEAD < num_core).then_some(i + rows_op::PREFETCH_AHEAD) {
+            for nb in neighbours {
+                rows_op::prefetch_row(values, nb[ahead] as usize, channels);
+                rows_op::prefetch_row(grad, nb[ahead] as usize, channels);
+            }
+        }
         for ch in 0..channels {
             let centre = values[i * channels + ch];
             let mut sq = 0.0f32;

@@ -135,11 +135,17 @@ fn step_rows(
         let j = rng.random_range(i..touched);
         subset.swap(i, j);
     }
+    // The grid lookups (random reads of the links) in parallel; the
+    // insertions, which number the new rows, in order.
+    let grid_neighbours: Vec<[Option<i32>; 3]> = subset.rows()[..num_core]
+        .par_iter()
+        .with_min_len(1 << 12)
+        .map(|&row| std::array::from_fn(|axis| grid.neighbour_row(row as usize, axis)))
+        .collect();
     let mut neighbours: [Vec<i32>; 3] = std::array::from_fn(|_| Vec::with_capacity(num_core));
-    for li in 0..num_core {
-        let row = subset.rows()[li] as usize;
-        for (axis, list) in neighbours.iter_mut().enumerate() {
-            list.push(match grid.neighbour_row(row, axis) {
+    for (li, found) in grid_neighbours.into_iter().enumerate() {
+        for (list, nb) in neighbours.iter_mut().zip(found) {
+            list.push(match nb {
                 Some(nb) => subset.insert(nb),
                 None => li as i32,
             });

@@ -261,7 +261,11 @@ pub fn stylize_timing(
                 mean_step_seconds: times.iter().sum::<f64>() / steps as f64,
                 parts: parts
                     .iter()
-                    .map(|p| crate::util::profile::PartTime { seconds: p.seconds / steps as f64, ..p.clone() })
+                    .map(|p| crate::util::profile::PartTime {
+                        seconds: p.seconds / steps as f64,
+                        cpu_seconds: p.cpu_seconds.map(|c| c / steps as f64),
+                        ..p.clone()
+                    })
                     .collect(),
             })
         })

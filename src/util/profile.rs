@@ -5,6 +5,9 @@
 //! Host wall time: on the CPU backends work runs when it is issued, so each
 //! part gets its own cost. On a GPU the queue runs asynchronously and a
 //! part's time lands where the host next waits for the device (a read).
+//! Parts timed with [`StepProfile::time`] also get the process's CPU time
+//! (all threads), so CPU seconds over wall seconds says how much of the
+//! machine a part used: about 1 for a serial part, up to the core count.
 
 use std::cell::RefCell;
 use std::time::Instant;
@@ -18,6 +21,11 @@ pub struct PartTime {
     pub seconds: f64,
     /// How many times it was timed.
     pub calls: usize,
+    /// The process's CPU seconds (all threads) over the same calls, where
+    /// the part was timed by [`StepProfile::time`] on a system that has
+    /// the clock.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cpu_seconds: Option<f64>,
 }
 
 /// Seconds per part, in the order the parts were first timed.
@@ -29,21 +37,28 @@ pub struct StepProfile {
 impl StepProfile {
     /// Runs `f`, adding its wall time to `part`.
     pub fn time<T>(&self, part: &str, f: impl FnOnce() -> T) -> T {
-        let started = Instant::now();
+        let (started, cpu_started) = (Instant::now(), process_cpu_seconds());
         let value = f();
-        self.add(part, started.elapsed().as_secs_f64());
+        let cpu = cpu_started.zip(process_cpu_seconds()).map(|(a, b)| b - a);
+        self.record(part, started.elapsed().as_secs_f64(), cpu);
         value
     }
 
-    /// Adds `seconds` to `part`.
+    /// Adds `seconds` (wall) to `part`.
     pub fn add(&self, part: &str, seconds: f64) {
+        self.record(part, seconds, None);
+    }
+
+    fn record(&self, part: &str, seconds: f64, cpu_seconds: Option<f64>) {
         let mut parts = self.parts.borrow_mut();
         match parts.iter_mut().find(|p| p.part == part) {
             Some(p) => {
                 p.seconds += seconds;
                 p.calls += 1;
+                // A part timed both ways has no CPU total.
+                p.cpu_seconds = p.cpu_seconds.zip(cpu_seconds).map(|(a, b)| a + b);
             }
-            None => parts.push(PartTime { part: part.to_string(), seconds, calls: 1 }),
+            None => parts.push(PartTime { part: part.to_string(), seconds, calls: 1, cpu_seconds }),
         }
     }
 
@@ -58,17 +73,45 @@ impl StepProfile {
     }
 }
 
+/// CPU seconds the process (all its threads) has used, where the system
+/// has the clock.
+fn process_cpu_seconds() -> Option<f64> {
+    #[cfg(unix)]
+    {
+        let mut ts = libc::timespec { tv_sec: 0, tv_nsec: 0 };
+        // SAFETY: `ts` is a valid timespec for the call to write.
+        let rc = unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+        (rc == 0).then_some(ts.tv_sec as f64 + ts.tv_nsec as f64 * 1e-9)
+    }
+    #[cfg(not(unix))]
+    {
+        None
+    }
+}
+
 /// `1.2 s`, or `35 ms` below a second.
 fn seconds(s: f64) -> String {
     if s >= 1.0 { format!("{s:.1} s") } else { format!("{:.0} ms", s * 1e3) }
 }
 
-/// A one-line summary: each part's share of the summed time.
+/// A one-line summary: each part's share of the summed time, and its CPU
+/// share (CPU over wall time; 200 % is two busy cores) where known.
 pub fn describe(parts: &[PartTime]) -> String {
     let total: f64 = parts.iter().map(|p| p.seconds).sum();
     let shares: Vec<String> = parts
         .iter()
-        .map(|p| format!("{} {} ({:.0} %)", p.part, seconds(p.seconds), 100.0 * p.seconds / total.max(1e-12)))
+        .map(|p| {
+            let share = 100.0 * p.seconds / total.max(1e-12);
+            match p.cpu_seconds {
+                Some(cpu) => format!(
+                    "{} {} ({share:.0} %, CPU {:.0} %)",
+                    p.part,
+                    seconds(p.seconds),
+                    100.0 * cpu / p.seconds.max(1e-12)
+                ),
+                None => format!("{} {} ({share:.0} %)", p.part, seconds(p.seconds)),
+            }
+        })
         .collect();
     shares.join(", ")
 }
@@ -87,8 +130,19 @@ mod tests {
         let parts = p.parts();
         assert_eq!(parts.iter().map(|t| t.part.as_str()).collect::<Vec<_>>(), ["render", "vgg"]);
         assert_eq!((parts[0].calls, parts[1].calls), (2, 1));
+        // Only the parts timed with `time` alone carry CPU time.
+        assert_eq!((parts[0].cpu_seconds, parts[1].cpu_seconds), (None, None));
+        let busy = p.time("spin", || (0..3_000_000u64).fold(0u64, |a, i| a.wrapping_mul(31).wrapping_add(i)));
+        assert_ne!(busy, 1);
+        let spin = &p.parts()[2];
+        if cfg!(unix) {
+            let cpu = spin.cpu_seconds.expect("CPU time on unix");
+            assert!(cpu > 0.0 && cpu <= spin.seconds * 64.0, "{cpu} CPU s in {} s", spin.seconds);
+        }
         assert!(parts[0].seconds >= 1.0 && parts[0].seconds < 1.5);
         assert!(describe(&parts).starts_with("render 1.0 s (33 %), vgg 2.0 s (67 %)"));
+        let timed = PartTime { part: "march".into(), seconds: 2.0, calls: 4, cpu_seconds: Some(3.0) };
+        assert_eq!(describe(&[timed]), "march 2.0 s (100 %, CPU 150 %)");
         assert_eq!(seconds(0.035), "35 ms");
         p.clear();
         assert!(p.parts().is_empty());

@@ -219,6 +219,7 @@ mod host_op {
 
 #[cfg(any(feature = "flex", feature = "ndarray"))]
 pub use host_op::RowsBackend;
+pub(crate) use kernel::{PREFETCH_AHEAD, prefetch_row};
 
 /// The loops on host slices.
 mod kernel {
@@ -309,13 +310,13 @@ mod kernel {
     /// How many rows ahead the loops above ask for a row: the step's rows
     /// are scattered over a tensor of hundreds of MB, each a cache miss,
     /// and a loop that reads one row at a time waits on each in turn.
-    const PREFETCH_AHEAD: usize = 8;
+    pub const PREFETCH_AHEAD: usize = 8;
 
     /// A hint to start loading row `row` (`cols` values) of `data` into
     /// the cache; changes no value. A row of 27 SH coefficients spans two
     /// or three cache lines.
     #[inline(always)]
-    fn prefetch_row(data: &[f32], row: usize, cols: usize) {
+    pub fn prefetch_row(data: &[f32], row: usize, cols: usize) {
         #[cfg(target_arch = "x86_64")]
         {
             use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
