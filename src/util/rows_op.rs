@@ -281,30 +281,43 @@ mod kernel {
     /// `update(k, a_row, b_row)` on rows `rows[k]` of `a` and `b` (both
     /// `[n, cols]`), in place. Split as [`add`]: each piece of rows gets the
     /// indices in its range, in their order (bucketed once, not scanned
-    /// per piece).
+    /// per piece). The bucketing runs in parallel too: each of
+    /// `BUCKET_CHUNKS` chunks of the index list sorts its own indices into
+    /// the pieces, and a piece takes the chunks' lists in chunk order, so
+    /// it sees its indices in the order of a serial pass (on fern's
+    /// density, one value a row, the serial pass was most of the update).
     pub fn update_pairs(a: &mut [f32], b: &mut [f32], cols: usize, rows: &[i32], update: &super::RowPairUpdate) {
+        const BUCKET_CHUNKS: usize = 16;
         let n = a.len() / cols.max(1);
         assert_eq!(a.len(), b.len(), "row pairs of two tensors of one shape");
         let rows_per_piece = n.div_ceil(ADD_PIECES).max(1);
-        let mut buckets: Vec<Vec<u32>> = vec![Vec::new(); n.div_ceil(rows_per_piece)];
-        for (k, &r) in rows.iter().enumerate() {
-            buckets[checked(r, n) / rows_per_piece].push(k as u32);
-        }
-        let piece = rows_per_piece * cols.max(1);
-        a.par_chunks_mut(piece).zip(b.par_chunks_mut(piece)).zip(&buckets).enumerate().for_each(
-            |(p, ((pa, pb), ks))| {
-                let first = p * rows_per_piece;
-                for (i, &k) in ks.iter().enumerate() {
-                    if let Some(&ahead) = ks.get(i + PREFETCH_AHEAD) {
-                        let row = rows[ahead as usize] as usize - first;
-                        prefetch_row(pa, row, cols);
-                        prefetch_row(pb, row, cols);
-                    }
-                    let at = (rows[k as usize] as usize - first) * cols;
-                    update(k as usize, &mut pa[at..at + cols], &mut pb[at..at + cols]);
+        let pieces = n.div_ceil(rows_per_piece);
+        let chunk = rows.len().div_ceil(BUCKET_CHUNKS).max(1);
+        let chunk_buckets: Vec<Vec<Vec<u32>>> = rows
+            .par_chunks(chunk)
+            .enumerate()
+            .map(|(c, part)| {
+                let mut buckets = vec![Vec::new(); pieces];
+                for (i, &r) in part.iter().enumerate() {
+                    buckets[checked(r, n) / rows_per_piece].push((c * chunk + i) as u32);
                 }
-            },
-        );
+                buckets
+            })
+            .collect();
+        let piece = rows_per_piece * cols.max(1);
+        a.par_chunks_mut(piece).zip(b.par_chunks_mut(piece)).enumerate().for_each(|(p, (pa, pb))| {
+            let ks: Vec<u32> = chunk_buckets.iter().flat_map(|buckets| buckets[p].iter().copied()).collect();
+            let first = p * rows_per_piece;
+            for (i, &k) in ks.iter().enumerate() {
+                if let Some(&ahead) = ks.get(i + PREFETCH_AHEAD) {
+                    let row = rows[ahead as usize] as usize - first;
+                    prefetch_row(pa, row, cols);
+                    prefetch_row(pb, row, cols);
+                }
+                let at = (rows[k as usize] as usize - first) * cols;
+                update(k as usize, &mut pa[at..at + cols], &mut pb[at..at + cols]);
+            }
+        });
     }
 
     /// How many rows ahead the loops above ask for a row: the step's rows
