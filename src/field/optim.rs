@@ -187,11 +187,9 @@ pub fn add_tv_gradient_per_channel(
         // The neighbours are rows anywhere in the step: ask for the rows of
         // a later centre now (the loop over channels is too long for the
         // processor to reach the next centre's loads by itself).
-        if let Some(ahead) = (i + rows_op::PREFETCH_AHEAD < num_core).then_some(i + rows_op::PREFETCH_AHEAD) {
-            for nb in neighbours {
-                rows_op::prefetch_row(values, nb[ahead] as usize, channels);
-                rows_op::prefetch_row(grad, nb[ahead] as usize, channels);
-            }
+        for nb in neighbours.iter().filter_map(|nb| nb.get(i + rows_op::PREFETCH_AHEAD)) {
+            rows_op::prefetch_row(values, *nb as usize, channels);
+            rows_op::prefetch_row(grad, *nb as usize, channels);
         }
         for ch in 0..channels {
             let centre = values[i * channels + ch];
