@@ -25,9 +25,11 @@
 //! weights are frozen here and only the tests need it.
 //!
 //! Work is split into bands of tile rows per image (their size fixed by
-//! the layer's shape, never by the thread count), run in parallel with
-//! rayon; each output value is computed by exactly one band with a fixed
-//! order of operations, so results do not depend on the thread count.
+//! the layer's shape, never by the thread count), one after another; inside
+//! a band each step runs in parallel with rayon over independent pieces
+//! (input channels, the 36 products, output channels), each computed by
+//! one thread with a fixed order of operations, so results do not depend
+//! on the thread count.
 
 use gemm::Parallelism;
 use rayon::prelude::*;
@@ -137,6 +139,46 @@ impl WinogradWeights {
     }
 }
 
+/// A frozen layer's weights prepared once for [`forward`] and
+/// [`input_grad`]: the Winograd-domain weights of the forward, and those of
+/// the input gradient, built on first use (forward-only callers never pay
+/// for them). Preparing them on every call cost VGG16 as much as its
+/// matrix products on the deeper layers (issue 19).
+pub struct PreparedWeights {
+    /// `[K, C, 3, 3]`, kept for the input gradient's weights.
+    weights: Vec<f32>,
+    forward: WinogradWeights,
+    flipped: std::sync::OnceLock<WinogradWeights>,
+}
+
+impl PreparedWeights {
+    /// From weights `[K, C, 3, 3]` (row-major, as `conv2d`'s).
+    pub fn new(weights: Vec<f32>, k: usize, c: usize) -> Self {
+        let forward = WinogradWeights::new(&weights, k, c);
+        Self { weights, forward, flipped: std::sync::OnceLock::new() }
+    }
+
+    /// The forward's weights.
+    pub fn forward(&self) -> &WinogradWeights {
+        &self.forward
+    }
+
+    /// The input gradient's weights (see [`WinogradWeights::flipped_transposed`]).
+    pub fn flipped(&self) -> &WinogradWeights {
+        self.flipped.get_or_init(|| WinogradWeights::flipped_transposed(&self.weights, self.forward.k, self.forward.c))
+    }
+}
+
+impl std::fmt::Debug for PreparedWeights {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("PreparedWeights")
+            .field("out_channels", &self.forward.k)
+            .field("in_channels", &self.forward.c)
+            .field("flipped", &self.flipped.get().is_some())
+            .finish()
+    }
+}
+
 impl Drop for WinogradWeights {
     fn drop(&mut self) {
         WEIGHT_BUFFERS.give_back(std::mem::take(&mut self.u));
@@ -182,21 +224,20 @@ pub fn forward(x: &[f32], dims: Dims, weights: &WinogradWeights, bias: Option<&[
         return y;
     }
     let (tiles_h, tiles_w) = (dims.h.div_ceil(TILE), dims.w.div_ceil(TILE));
-    let band_rows = band_rows(tiles_h, tiles_w, dims.c + k);
-    let bands: Vec<(usize, usize)> =
-        (0..dims.n).flat_map(|n| (0..tiles_h).step_by(band_rows).map(move |t0| (n, t0))).collect();
-    let out = SharedOut(y.as_mut_ptr());
-    let tiles_max = band_rows * tiles_w;
-    bands.into_par_iter().for_each(|(n, t0)| {
-        let t1 = (t0 + band_rows).min(tiles_h);
-        let image = &x[n * dims.c * dims.h * dims.w..(n + 1) * dims.c * dims.h * dims.w];
-        // SAFETY: the offset is image n's first output value.
-        let image_out = SharedOut(unsafe { out.ptr().add(n * k * dims.h * dims.w) });
-        SCRATCH.with_borrow_mut(|scratch| {
-            scratch.fit(dims.c, k, tiles_max, dims.w);
-            band(image, dims, weights, bias, relu, t0, t1, scratch, image_out);
-        });
-    });
+    let band_rows = band_rows(tiles_w, dims.c + k);
+    let tiles_max = band_rows.min(tiles_h) * tiles_w;
+    // Every value of a band's V and M is written before it is read.
+    let mut v = BAND_BUFFERS.take(XI * dims.c * tiles_max);
+    let mut m = BAND_BUFFERS.take(XI * k * tiles_max);
+    let (image_in, image_out) = (dims.c * dims.h * dims.w, k * dims.h * dims.w);
+    for (image, image_y) in x.chunks_exact(image_in).zip(y.chunks_exact_mut(image_out)) {
+        for t0 in (0..tiles_h).step_by(band_rows) {
+            let rows = t0..(t0 + band_rows).min(tiles_h);
+            band(image, dims, weights, bias, relu, rows, &mut v, &mut m, image_y);
+        }
+    }
+    BAND_BUFFERS.give_back(v);
+    BAND_BUFFERS.give_back(m);
     y
 }
 
@@ -282,62 +323,22 @@ pub fn bias_grad(dy: &[f32], dims: Dims) -> Vec<f32> {
         .collect()
 }
 
-/// Tile rows per band: enough tiles for the matrix products to run at
-/// speed, few enough that a band's transformed input and output (36 (C+K)
-/// values per tile) stay near 32 MB, and at least `MIN_BANDS` bands per
-/// image when it has the rows, so the cores share small layers. Fixed
+/// Tile rows per band: as many as keep the band's transformed input and
+/// products (36 (C+K) values per tile) near 32 MB, and at least 256 tiles.
+/// On VGG16's deeper layers at the losses' sizes that is the whole image,
+/// so each layer's transformed weights are read once per image. Fixed
 /// numbers, not the thread count: the bands decide the matrix products'
 /// shapes, which may decide gemm's blocking and so the rounding, and the
 /// results must not depend on the machine's core count.
-fn band_rows(tiles_h: usize, tiles_w: usize, channels: usize) -> usize {
-    const MIN_BANDS: usize = 4;
+fn band_rows(tiles_w: usize, channels: usize) -> usize {
     let tiles = (8_388_608 / (XI * channels)).clamp(256, 8192);
-    let by_size = tiles.div_ceil(tiles_w).max(1);
-    by_size.min(tiles_h.div_ceil(MIN_BANDS).max(1))
+    tiles.div_ceil(tiles_w).max(1)
 }
 
-/// One thread's buffers: the band's transformed input `V[xi][c][p]`, its
-/// products `M[xi][k][p]`, and per-row work arrays.
-struct Scratch {
-    v: Vec<f32>,
-    m: Vec<f32>,
-    /// The 6 zero-padded input rows of a tile row, each split into its 4
-    /// column phases (`tiles_w + 1` values each), then their column
-    /// transform.
-    rows: Vec<f32>,
-    t: Vec<f32>,
-    /// The output transform's partial rows (4 x 6 rows of `tiles_w`) and
-    /// one tile row's 4 output rows, one per column phase.
-    s: Vec<f32>,
-}
-
-thread_local! {
-    /// Each thread keeps its buffers between calls: allocating them afresh
-    /// cost more in page faults than the transforms themselves. They only
-    /// grow, to the largest band seen (about 16 MB, see `band_rows`).
-    static SCRATCH: std::cell::RefCell<Scratch> = const {
-        std::cell::RefCell::new(Scratch { v: Vec::new(), m: Vec::new(), rows: Vec::new(), t: Vec::new(), s: Vec::new() })
-    };
-}
-
-impl Scratch {
-    /// Room for a band of `tiles` tiles of an image `w` wide, `c` input and
-    /// `k` output channels (longer buffers are fine: `band` indexes from
-    /// the start).
-    fn fit(&mut self, c: usize, k: usize, tiles: usize, w: usize) {
-        let n1 = w.div_ceil(TILE) + 1;
-        let grow = |buffer: &mut Vec<f32>, len: usize| {
-            if buffer.len() < len {
-                buffer.resize(len, 0.0);
-            }
-        };
-        grow(&mut self.v, XI * c * tiles);
-        grow(&mut self.m, XI * k * tiles);
-        grow(&mut self.rows, ALPHA * TILE * n1);
-        grow(&mut self.t, ALPHA * TILE * n1);
-        grow(&mut self.s, (TILE * ALPHA + TILE) * (n1 - 1));
-    }
-}
+/// The bands' transformed input `V[xi][c][p]` and products `M[xi][k][p]`,
+/// kept between calls: allocating them afresh cost more in page faults
+/// than the transforms themselves.
+static BAND_BUFFERS: BufferPool = BufferPool::new(2);
 
 /// B^T d for 6 vectors d (one 6-point input transform per index), B^T =
 /// [[4,0,-5,0,1,0],[0,-4,-4,1,1,0],[0,4,-4,-1,1,0],[0,-2,-1,2,1,0],
@@ -395,18 +396,16 @@ fn weight_transform(out: [&mut [f32]; 6], g: [&[f32]; 3]) {
     }
 }
 
-/// Six distinct rows `[at, at + len)` of planes `first .. first + 6` of a
-/// buffer of planes of `plane` values each.
-fn six_rows(buffer: &mut [f32], plane: usize, first: usize, at: usize, len: usize) -> [&mut [f32]; 6] {
-    let group = &mut buffer[first * plane..(first + 6) * plane];
-    let mut rows = group.chunks_mut(plane).map(|p| &mut p[at..at + len]);
-    std::array::from_fn(|_| rows.next().expect("six planes"))
-}
-
-/// Output tile rows `[t0, t1)` of one image (`x`, written to `y`, the
-/// image's output `[K, H, W]`): transform the input tiles, multiply,
-/// transform back. Winograd F(4x4, 3x3) with the points 0, 1, -1, 2, -2
-/// and infinity (Lavin & Gray's matrices).
+/// Output tile rows `rows` of one image (`x`, written to `y`, the image's
+/// output `[K, H, W]`): transform the input tiles, multiply, transform
+/// back. Winograd F(4x4, 3x3) with the points 0, 1, -1, 2, -2 and infinity
+/// (Lavin & Gray's matrices). Each step runs in parallel over independent
+/// pieces, each piece computed by one thread with a fixed order of
+/// operations: the input transform per input channel, the 36 matrix
+/// products per position, the output transform per output channel (one
+/// product per position over the whole band, rather than one per band and
+/// thread, keeps gemm's tiles-long dimension filled on small layers and
+/// reads the weights once per band).
 ///
 /// The transforms run along whole tile rows so that they vectorise: the 6
 /// input rows of a tile row are zero-padded (padded column q = input
@@ -420,71 +419,85 @@ fn band(
     weights: &WinogradWeights,
     bias: Option<&[f32]>,
     relu: bool,
-    t0: usize,
-    t1: usize,
-    scratch: &mut Scratch,
-    y: SharedOut,
+    rows: std::ops::Range<usize>,
+    v: &mut [f32],
+    m: &mut [f32],
+    y: &mut [f32],
 ) {
     let Dims { c, h, w, .. } = dims;
     let k = weights.k;
     let tw = w.div_ceil(TILE);
     let n1 = tw + 1;
     let row_len = TILE * n1;
+    let (t0, t1) = (rows.start, rows.end);
     let tiles = (t1 - t0) * tw;
-    let Scratch { v, m, rows, t, s } = scratch;
+    assert!(v.len() >= XI * c * tiles && m.len() >= XI * k * tiles, "band buffers too short");
 
-    for ci in 0..c {
-        let plane = &x[ci * h * w..(ci + 1) * h * w];
-        for ty in t0..t1 {
-            for a in 0..ALPHA {
-                let row = &mut rows[a * row_len..(a + 1) * row_len];
-                row.fill(0.0);
-                let src_row = (TILE * ty + a).wrapping_sub(1);
-                if src_row < h {
-                    // Input column col is padded column col + 1 = 4t + r:
-                    // columns 4t .. 4t+3 go to R_1[t], R_2[t], R_3[t], R_0[t+1].
-                    let (r0, rest) = row.split_at_mut(n1);
-                    let (r1, rest) = rest.split_at_mut(n1);
-                    let (r2, r3) = rest.split_at_mut(n1);
-                    let src = &plane[src_row * w..(src_row + 1) * w];
-                    let mut quads = src.chunks_exact(TILE);
-                    for (t, quad) in quads.by_ref().enumerate() {
-                        r1[t] = quad[0];
-                        r2[t] = quad[1];
-                        r3[t] = quad[2];
-                        r0[t + 1] = quad[3];
-                    }
-                    let (t, rest) = (w / TILE, quads.remainder());
-                    for (r, &value) in [r1, r2, r3].into_iter().zip(rest) {
-                        r[t] = value;
+    // V: per input channel (its rows of V), in parallel.
+    let v_out = SharedOut(v.as_mut_ptr());
+    (0..c).into_par_iter().for_each_init(
+        || (vec![0.0f32; ALPHA * row_len], vec![0.0f32; ALPHA * row_len]),
+        |(padded, t), ci| {
+            let plane = &x[ci * h * w..(ci + 1) * h * w];
+            for ty in t0..t1 {
+                for a in 0..ALPHA {
+                    let row = &mut padded[a * row_len..(a + 1) * row_len];
+                    row.fill(0.0);
+                    let src_row = (TILE * ty + a).wrapping_sub(1);
+                    if src_row < h {
+                        // Input column col is padded column col + 1 = 4t + r:
+                        // columns 4t .. 4t+3 go to R_1[t], R_2[t], R_3[t], R_0[t+1].
+                        let (r0, rest) = row.split_at_mut(n1);
+                        let (r1, rest) = rest.split_at_mut(n1);
+                        let (r2, r3) = rest.split_at_mut(n1);
+                        let src = &plane[src_row * w..(src_row + 1) * w];
+                        let mut quads = src.chunks_exact(TILE);
+                        for (t, quad) in quads.by_ref().enumerate() {
+                            r1[t] = quad[0];
+                            r2[t] = quad[1];
+                            r3[t] = quad[2];
+                            r0[t + 1] = quad[3];
+                        }
+                        let (t, rest) = (w / TILE, quads.remainder());
+                        for (r, &value) in [r1, r2, r3].into_iter().zip(rest) {
+                            r[t] = value;
+                        }
                     }
                 }
+                // Columns: T = B^T [row 0; ...; row 5], all phases at once.
+                let r: [&[f32]; 6] = std::array::from_fn(|a| &padded[a * row_len..(a + 1) * row_len]);
+                let mut t_rows = t.chunks_mut(row_len);
+                input_transform(std::array::from_fn(|_| t_rows.next().expect("six rows")), r);
+                // Rows: V[6 i + j][ci] from row i of T.
+                let at = ci * tiles + (ty - t0) * tw;
+                for i in 0..ALPHA {
+                    let ti = &t[i * row_len..(i + 1) * row_len];
+                    let phase = |r: usize, shift: usize| &ti[r * n1 + shift..r * n1 + shift + tw];
+                    let d = [phase(0, 0), phase(1, 0), phase(2, 0), phase(3, 0), phase(0, 1), phase(1, 1)];
+                    // SAFETY: row ci of V[xi] belongs to this input channel
+                    // only, and lies inside v (asserted above).
+                    let dst = std::array::from_fn(|j| unsafe {
+                        std::slice::from_raw_parts_mut(v_out.ptr().add((i * ALPHA + j) * c * tiles + at), tw)
+                    });
+                    input_transform(dst, d);
+                }
             }
-            // Columns: T = B^T [row 0; ...; row 5], all phases at once.
-            let r: [&[f32]; 6] = std::array::from_fn(|a| &rows[a * row_len..(a + 1) * row_len]);
-            let mut t_rows = t.chunks_mut(row_len);
-            input_transform(std::array::from_fn(|_| t_rows.next().expect("six rows")), r);
-            // Rows: V[6 i + j] from row i of T.
-            let at = ci * tiles + (ty - t0) * tw;
-            for i in 0..ALPHA {
-                let ti = &t[i * row_len..(i + 1) * row_len];
-                let phase = |r: usize, shift: usize| &ti[r * n1 + shift..r * n1 + shift + tw];
-                let d = [phase(0, 0), phase(1, 0), phase(2, 0), phase(3, 0), phase(0, 1), phase(1, 1)];
-                input_transform(six_rows(v, c * tiles, i * ALPHA, at, tw), d);
-            }
-        }
-    }
+        },
+    );
 
-    // M[xi] (K x P) = U[xi] (K x C) . V[xi] (C x P).
-    for xi in 0..XI {
+    // M[xi] (K x P) = U[xi] (K x C) . V[xi] (C x P), per position in parallel.
+    let v: &[f32] = v;
+    let m_out = SharedOut(m.as_mut_ptr());
+    (0..XI).into_par_iter().for_each(|xi| {
         // SAFETY: the three matrices lie inside u, v and m with the strides
-        // given (row-major, leading dimensions C, P and P).
+        // given (row-major, leading dimensions C, P and P); M[xi] is
+        // written by this position only.
         unsafe {
             gemm::gemm(
                 k,
                 tiles,
                 c,
-                m.as_mut_ptr().add(xi * k * tiles),
+                m_out.ptr().add(xi * k * tiles),
                 1,
                 tiles as isize,
                 false,
@@ -502,48 +515,58 @@ fn band(
                 Parallelism::None,
             );
         }
-    }
+    });
 
     // Y = A^T M A per tile, plus the bias: down the columns into S (4 x 6
-    // rows of tw), then along the rows into 4 output rows per tile row.
+    // rows of tw), then along the rows into 4 output rows per tile row; per
+    // output channel in parallel.
+    let m: &[f32] = m;
     let floor = if relu { 0.0 } else { f32::NEG_INFINITY };
-    for ko in 0..k {
-        let b = bias.map_or(0.0, |b| b[ko]);
-        for ty in t0..t1 {
-            let at = (ty - t0) * tw;
-            let row = |xi: usize| &m[(xi * k + ko) * tiles + at..][..tw];
-            let (s_cols, s_out) = s.split_at_mut(TILE * ALPHA * tw);
-            for j in 0..ALPHA {
-                let col: [&[f32]; 6] = std::array::from_fn(|a| row(a * ALPHA + j));
-                let mut dst = s_cols.chunks_mut(tw).skip(j).step_by(ALPHA);
-                output_transform(std::array::from_fn(|_| dst.next().expect("four rows")), col, 0.0, f32::NEG_INFINITY);
+    let y_out = SharedOut(y.as_mut_ptr());
+    (0..k).into_par_iter().for_each_init(
+        || vec![0.0f32; (TILE * ALPHA + TILE) * tw],
+        |s, ko| {
+            let b = bias.map_or(0.0, |b| b[ko]);
+            for ty in t0..t1 {
+                let at = (ty - t0) * tw;
+                let row = |xi: usize| &m[(xi * k + ko) * tiles + at..][..tw];
+                let (s_cols, s_out) = s.split_at_mut(TILE * ALPHA * tw);
+                for j in 0..ALPHA {
+                    let col: [&[f32]; 6] = std::array::from_fn(|a| row(a * ALPHA + j));
+                    let mut dst = s_cols.chunks_mut(tw).skip(j).step_by(ALPHA);
+                    output_transform(
+                        std::array::from_fn(|_| dst.next().expect("four rows")),
+                        col,
+                        0.0,
+                        f32::NEG_INFINITY,
+                    );
+                }
+                for i in 0..TILE {
+                    let out_row = TILE * ty + i;
+                    if out_row >= h {
+                        break;
+                    }
+                    let si: [&[f32]; 6] = std::array::from_fn(|j| &s_cols[(i * ALPHA + j) * tw..][..tw]);
+                    let mut y_parts = s_out.chunks_mut(tw);
+                    output_transform(std::array::from_fn(|_| y_parts.next().expect("four rows")), si, b, floor);
+                    // SAFETY: row out_row of channel ko lies in this image's
+                    // output; only this output channel's piece writes it.
+                    let dst = unsafe { std::slice::from_raw_parts_mut(y_out.ptr().add((ko * h + out_row) * w), w) };
+                    let (y0, rest) = s_out.split_at(tw);
+                    let (y1, rest) = rest.split_at(tw);
+                    let (y2, y3) = rest.split_at(tw);
+                    let mut quads = dst.chunks_exact_mut(TILE);
+                    for (tx, out) in quads.by_ref().enumerate() {
+                        out.copy_from_slice(&[y0[tx], y1[tx], y2[tx], y3[tx]]);
+                    }
+                    let tx = w / TILE;
+                    for (value, phase) in quads.into_remainder().iter_mut().zip([y0, y1, y2]) {
+                        *value = phase[tx];
+                    }
+                }
             }
-            for i in 0..TILE {
-                let out_row = TILE * ty + i;
-                if out_row >= h {
-                    break;
-                }
-                let si: [&[f32]; 6] = std::array::from_fn(|j| &s_cols[(i * ALPHA + j) * tw..][..tw]);
-                let mut y_parts = s_out.chunks_mut(tw);
-                output_transform(std::array::from_fn(|_| y_parts.next().expect("four rows")), si, b, floor);
-                // SAFETY: row out_row of channel ko lies in this image's
-                // output and in this band's rows [4 t0, 4 t1): no other band
-                // touches it.
-                let dst = unsafe { std::slice::from_raw_parts_mut(y.ptr().add((ko * h + out_row) * w), w) };
-                let (y0, rest) = s_out.split_at(tw);
-                let (y1, rest) = rest.split_at(tw);
-                let (y2, y3) = rest.split_at(tw);
-                let mut quads = dst.chunks_exact_mut(TILE);
-                for (tx, out) in quads.by_ref().enumerate() {
-                    out.copy_from_slice(&[y0[tx], y1[tx], y2[tx], y3[tx]]);
-                }
-                let tx = w / TILE;
-                for (value, phase) in quads.into_remainder().iter_mut().zip([y0, y1, y2]) {
-                    *value = phase[tx];
-                }
-            }
-        }
-    }
+        },
+    );
 }
 
 #[cfg(test)]

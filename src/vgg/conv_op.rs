@@ -13,9 +13,13 @@
 // code the extension macro generates names it too.
 #![allow(deprecated)]
 
+use std::sync::{Arc, OnceLock};
+
 use burn::nn::PaddingConfig2d;
 use burn::nn::conv::Conv2d;
 use burn::tensor::Tensor;
+
+use crate::vgg::conv3x3::PreparedWeights;
 
 #[cfg(any(feature = "flex", feature = "ndarray"))]
 use crate::util::tensor::is_host_memory;
@@ -37,7 +41,9 @@ mod host_op {
     use burn::backend::{Backend, backend_extension};
     use burn::tensor::TensorData;
 
-    use crate::vgg::conv3x3::{self as kernel, Dims, WinogradWeights};
+    use std::sync::Arc;
+
+    use crate::vgg::conv3x3::{self as kernel, Dims, PreparedWeights, WinogradWeights};
 
     /// A 3x3 convolution, stride 1, zero padding 1, with bias, and optionally
     /// the ReLU after it (VGG's pairs: one pass over the output instead of two,
@@ -53,6 +59,15 @@ mod host_op {
             bias: FloatTensor<Self>,
             relu: bool,
         ) -> FloatTensor<Self>;
+
+        /// As [`conv3x3`](Self::conv3x3) with weights prepared once
+        /// (`PreparedWeights`: a frozen layer's), and no weight gradient.
+        fn conv3x3_prepared(
+            x: FloatTensor<Self>,
+            bias: FloatTensor<Self>,
+            weights: Arc<PreparedWeights>,
+            relu: bool,
+        ) -> FloatTensor<Self>;
     }
 
     #[cfg(feature = "flex")]
@@ -65,6 +80,15 @@ mod host_op {
         ) -> FloatTensor<Self> {
             host_forward::<Self>(x, weight, bias, relu)
         }
+
+        fn conv3x3_prepared(
+            x: FloatTensor<Self>,
+            bias: FloatTensor<Self>,
+            weights: Arc<PreparedWeights>,
+            relu: bool,
+        ) -> FloatTensor<Self> {
+            host_forward_prepared::<Self>(x, bias, &weights, relu)
+        }
     }
 
     #[cfg(feature = "ndarray")]
@@ -76,6 +100,15 @@ mod host_op {
             relu: bool,
         ) -> FloatTensor<Self> {
             host_forward::<Self>(x, weight, bias, relu)
+        }
+
+        fn conv3x3_prepared(
+            x: FloatTensor<Self>,
+            bias: FloatTensor<Self>,
+            weights: Arc<PreparedWeights>,
+            relu: bool,
+        ) -> FloatTensor<Self> {
+            host_forward_prepared::<Self>(x, bias, &weights, relu)
         }
     }
 
@@ -93,17 +126,7 @@ mod host_op {
             let grad = grads.consume::<B>(&ops.node);
             let (x, weight, relu_output) = ops.state;
             let device = grad.device();
-            let (mut dy, dy_dims) = to_host::<B>(grad);
-            if let Some(y) = relu_output {
-                // Through the ReLU: no gradient where the output was clamped
-                // (relu'(0) = 0, as Burn's relu).
-                let (y, _) = to_host::<B>(y);
-                for (d, &y) in dy.iter_mut().zip(&y) {
-                    if y <= 0.0 {
-                        *d = 0.0;
-                    }
-                }
-            }
+            let (dy, dy_dims) = output_grad::<B>(grad, relu_output);
             if let Some(node) = node_x {
                 let (w, w_dims) = to_host::<B>(weight);
                 let flipped = WinogradWeights::flipped_transposed(&w, w_dims[0], w_dims[1]);
@@ -116,6 +139,51 @@ mod host_op {
                 let k = dy_dims[1];
                 let dw = kernel::weight_grad(&xs, dims(&x_dims), &dy, k);
                 grads.register::<B>(node.id, from_host::<B>(dw, vec![k, x_dims[1], 3, 3], &device));
+            }
+            if let Some(node) = node_bias {
+                let db = kernel::bias_grad(&dy, dims(&dy_dims));
+                grads.register::<B>(node.id, from_host::<B>(db, vec![dy_dims[1]], &device));
+            }
+        }
+    }
+
+    /// The output's gradient as host values and its shape, through the
+    /// ReLU when the forward ended in one (its output given): no gradient
+    /// where the output was clamped (relu'(0) = 0, as Burn's relu).
+    fn output_grad<B: Backend>(grad: FloatTensor<B>, relu_output: Option<FloatTensor<B>>) -> (Vec<f32>, Vec<usize>) {
+        let (mut dy, dy_dims) = to_host::<B>(grad);
+        if let Some(y) = relu_output {
+            let (y, _) = to_host::<B>(y);
+            for (d, &y) in dy.iter_mut().zip(&y) {
+                if y <= 0.0 {
+                    *d = 0.0;
+                }
+            }
+        }
+        (dy, dy_dims)
+    }
+
+    /// The backward step of the prepared operation: the input and bias
+    /// gradients (the weights are frozen).
+    #[derive(Debug)]
+    struct PreparedBackward {
+        weights: Arc<PreparedWeights>,
+    }
+
+    impl<B: Backend> Backward<B, 2> for PreparedBackward {
+        /// The forward's output when it ends in a ReLU.
+        type State = Option<FloatTensor<B>>;
+
+        fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
+            let [node_x, node_bias] = ops.parents;
+            let grad = grads.consume::<B>(&ops.node);
+            let device = grad.device();
+            let (dy, dy_dims) = output_grad::<B>(grad, ops.state);
+            if let Some(node) = node_x {
+                let flipped = self.weights.flipped();
+                let dx = kernel::input_grad(&dy, dims(&dy_dims), flipped);
+                let x_dims = [dy_dims[0], flipped.out_channels(), dy_dims[2], dy_dims[3]];
+                grads.register::<B>(node.id, from_host::<B>(dx, x_dims.to_vec(), &device));
             }
             if let Some(node) = node_bias {
                 let db = kernel::bias_grad(&dy, dims(&dy_dims));
@@ -143,6 +211,25 @@ mod host_op {
                 }
             }
         }
+
+        fn conv3x3_prepared(
+            x: FloatTensor<Self>,
+            bias: FloatTensor<Self>,
+            weights: Arc<PreparedWeights>,
+            relu: bool,
+        ) -> FloatTensor<Self> {
+            let backward = PreparedBackward { weights: weights.clone() };
+            match backward.prepare::<C>([x.node(), bias.node()]).compute_bound().stateful() {
+                OpsKind::Tracked(prep) => {
+                    let output = B::conv3x3_prepared(x.into_primitive(), bias.into_primitive(), weights, relu);
+                    let relu_output = relu.then(|| output.clone());
+                    prep.finish(relu_output, output)
+                }
+                OpsKind::UnTracked(prep) => {
+                    prep.finish(B::conv3x3_prepared(x.into_primitive(), bias.into_primitive(), weights, relu))
+                }
+            }
+        }
     }
 
     /// The forward on host memory, for any backend whose tensors can be read.
@@ -167,6 +254,23 @@ mod host_op {
         from_host::<B>(y, vec![x_dims[0], w_dims[0], x_dims[2], x_dims[3]], &device)
     }
 
+    /// The prepared forward on host memory.
+    fn host_forward_prepared<B: Backend>(
+        x: FloatTensor<B>,
+        bias: FloatTensor<B>,
+        weights: &PreparedWeights,
+        relu: bool,
+    ) -> FloatTensor<B> {
+        let device = x.device();
+        let (xs, x_dims) = to_host::<B>(x);
+        let (b, _) = to_host::<B>(bias);
+        assert_eq!(x_dims.len(), 4, "conv3x3 takes [N, C, H, W] input, got {x_dims:?}");
+        let forward = weights.forward();
+        assert_eq!(x_dims[1], forward.in_channels(), "conv3x3 input {x_dims:?} for {weights:?}");
+        let y = kernel::forward(&xs, dims(&x_dims), forward, Some(&b), relu);
+        from_host::<B>(y, vec![x_dims[0], forward.out_channels(), x_dims[2], x_dims[3]], &device)
+    }
+
     fn dims(shape: &[usize]) -> Dims {
         Dims { n: shape[0], c: shape[1], h: shape[2], w: shape[3] }
     }
@@ -189,11 +293,37 @@ pub use host_op::Conv3x3Backend;
 
 /// `relu(conv(x))`, through [`conv3x3`] where it applies (a 3x3, stride
 /// 1, padding 1 convolution with bias), else through Burn's own `conv2d`.
-pub fn conv3x3_relu_forward(conv: &Conv2d, x: Tensor<4>) -> Tensor<4> {
-    match &conv.bias {
-        Some(bias) if is_3x3_same(conv) => conv3x3(x, conv.weight.val(), bias.val(), true),
-        _ => burn::tensor::activation::relu(conv.forward(x)),
+/// With `prepared` (the slot of a frozen layer, whose weights never
+/// change), the CPU backends prepare the kernel's weights on first use and
+/// reuse them.
+pub fn conv3x3_relu_forward(conv: &Conv2d, x: Tensor<4>, prepared: Option<&PreparedSlot>) -> Tensor<4> {
+    let Some(bias) = conv.bias.as_ref().filter(|_| is_3x3_same(conv)) else {
+        return burn::tensor::activation::relu(conv.forward(x));
+    };
+    #[cfg(any(feature = "flex", feature = "ndarray"))]
+    if let (Some(slot), true) = (prepared, is_host_memory(&x.device())) {
+        let weights = slot.get_or_init(|| Arc::new(prepare(conv.weight.val()))).clone();
+        let out = <burn::backend::Dispatch as Conv3x3Backend>::conv3x3_prepared(
+            x.into_dispatch(),
+            bias.val().into_dispatch(),
+            weights,
+            true,
+        );
+        return Tensor::from_dispatch(out);
     }
+    #[cfg(not(any(feature = "flex", feature = "ndarray")))]
+    let _ = prepared;
+    conv3x3(x, conv.weight.val(), bias.val(), true)
+}
+
+/// A frozen layer's prepared kernel weights, filled on first use.
+pub type PreparedSlot = OnceLock<Arc<PreparedWeights>>;
+
+/// The kernel's weights of `weight` `[K, C, 3, 3]`.
+#[cfg(any(feature = "flex", feature = "ndarray"))]
+fn prepare(weight: Tensor<4>) -> PreparedWeights {
+    let [k, c, _, _] = weight.dims();
+    PreparedWeights::new(crate::util::tensor::to_vec(weight), k, c)
 }
 
 /// A 3x3, stride 1, padding 1 convolution with bias, then a ReLU when

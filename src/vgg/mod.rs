@@ -17,12 +17,14 @@
 //! once per `Vgg16::load`, so keep the value around.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 use thiserror::Error;
 
 pub use crate::util::tensor::image_tensor;
+use crate::vgg::conv_op::PreparedSlot;
 use crate::vgg::model::Model;
 
 pub mod conv3x3;
@@ -204,6 +206,9 @@ pub enum VggForward {
 pub struct Vgg16 {
     model: Model,
     forward: VggForward,
+    /// The Winograd kernel's weights of each convolution, prepared on first
+    /// use (the weights are frozen); clones share them.
+    prepared: Arc<[PreparedSlot; 13]>,
 }
 
 impl Vgg16 {
@@ -212,14 +217,14 @@ impl Vgg16 {
     pub fn load(device: &Device) -> Self {
         let model = Model::from_embedded(device).no_grad();
         crate::util::transfer::record_upload(model.num_params() * 4);
-        Self { model, forward: VggForward::default() }
+        Self { model, forward: VggForward::default(), prepared: Arc::default() }
     }
 
     /// The same architecture with Burn's default random initialisation under
     /// `seed`: the control for tests that must prove the real weights matter.
     pub fn random(device: &Device, seed: u64) -> Self {
         device.seed(seed);
-        Self { model: Model::new(device).no_grad(), forward: VggForward::default() }
+        Self { model: Model::new(device).no_grad(), forward: VggForward::default(), prepared: Arc::default() }
     }
 
     /// The same weights, the forward pass run as `forward` says.
@@ -274,8 +279,8 @@ impl Vgg16 {
                 let o = self.model.forward(image);
                 [o.0, o.1, o.2, o.3, o.4, o.5, o.6, o.7, o.8, o.9, o.10, o.11, o.12].into_iter().map(Some).collect()
             }
-            VggForward::Staged => staged::forward(&self.model, image, layers, false),
-            VggForward::Winograd => staged::forward(&self.model, image, layers, true),
+            VggForward::Staged => staged::forward(&self.model, image, layers, None),
+            VggForward::Winograd => staged::forward(&self.model, image, layers, Some(&self.prepared[..])),
         };
         let mut maps = BTreeMap::new();
         for (layer, map) in VggLayer::ALL.into_iter().zip(all) {

@@ -7,14 +7,20 @@
 use burn::tensor::Tensor;
 
 use crate::vgg::VggLayer;
-use crate::vgg::conv_op::conv3x3_relu_forward;
+use crate::vgg::conv_op::{PreparedSlot, conv3x3_relu_forward};
 use crate::vgg::model::Model;
 
 /// The ReLU outputs of `model` up to the deepest of `layers`, in network
 /// order (13 entries, `None` past the deepest).
-/// `winograd` runs the 3x3 convolutions through `vgg::conv_op` (on the CPU
-/// backends; Burn's `conv2d` elsewhere).
-pub fn forward(model: &Model, image: Tensor<4>, layers: &[VggLayer], winograd: bool) -> Vec<Option<Tensor<4>>> {
+/// With `prepared` (one slot per convolution) the 3x3 convolutions run
+/// through `vgg::conv_op` (on the CPU backends, with the slots' prepared
+/// weights; Burn's `conv2d` elsewhere), without it through Burn's `conv2d`.
+pub fn forward(
+    model: &Model,
+    image: Tensor<4>,
+    layers: &[VggLayer],
+    prepared: Option<&[PreparedSlot]>,
+) -> Vec<Option<Tensor<4>>> {
     let deepest = layers.iter().map(|l| l.index()).max().unwrap_or(0);
     let (scale, mean) = model.input_constants();
     let mut x = image.mul(scale.unsqueeze_dims(&[0, 1, 2])).sub(mean);
@@ -25,7 +31,10 @@ pub fn forward(model: &Model, image: Tensor<4>, layers: &[VggLayer], winograd: b
         if let Some(p) = [2, 4, 7, 10].iter().position(|&first| first == i) {
             x = pools[p].forward(x);
         }
-        x = if winograd { conv3x3_relu_forward(conv, x) } else { burn::tensor::activation::relu(conv.forward(x)) };
+        x = match prepared {
+            Some(slots) => conv3x3_relu_forward(conv, x, Some(&slots[i])),
+            None => burn::tensor::activation::relu(conv.forward(x)),
+        };
         out[i] = Some(x.clone());
     }
     out
