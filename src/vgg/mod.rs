@@ -201,14 +201,22 @@ pub enum VggForward {
     Winograd,
 }
 
+/// Convolutions whose kernel weights are prepared once and kept: those up
+/// to relu4_3, the deepest layer a loss back-propagates through (TCM).
+/// Stage 5 (relu5_x: colour matching's descriptors, a forward per view
+/// before the stylization) prepares its weights per call: keeping them
+/// would hold 140 MB for a few seconds' gain.
+const PREPARED_LAYERS: usize = VggLayer::Relu4_3 as usize + 1;
+
 /// The VGG16 feature stack (13 convolutions, ImageNet weights).
 #[derive(Debug, Clone)]
 pub struct Vgg16 {
     model: Model,
     forward: VggForward,
-    /// The Winograd kernel's weights of each convolution, prepared on first
-    /// use (the weights are frozen); clones share them.
-    prepared: Arc<[PreparedSlot; 13]>,
+    /// The Winograd kernel's weights of the first [`PREPARED_LAYERS`]
+    /// convolutions, prepared on first use (the weights are frozen); clones
+    /// share them.
+    prepared: Arc<[PreparedSlot; PREPARED_LAYERS]>,
 }
 
 impl Vgg16 {

@@ -12,9 +12,10 @@ use crate::vgg::model::Model;
 
 /// The ReLU outputs of `model` up to the deepest of `layers`, in network
 /// order (13 entries, `None` past the deepest).
-/// With `prepared` (one slot per convolution) the 3x3 convolutions run
-/// through `vgg::conv_op` (on the CPU backends, with the slots' prepared
-/// weights; Burn's `conv2d` elsewhere), without it through Burn's `conv2d`.
+/// With `prepared` (slots for the first convolutions) the 3x3 convolutions
+/// run through `vgg::conv_op` (on the CPU backends, with the slots'
+/// prepared weights where there is a slot; Burn's `conv2d` elsewhere),
+/// without it through Burn's `conv2d`.
 pub fn forward(
     model: &Model,
     image: Tensor<4>,
@@ -32,7 +33,7 @@ pub fn forward(
             x = pools[p].forward(x);
         }
         x = match prepared {
-            Some(slots) => conv3x3_relu_forward(conv, x, Some(&slots[i])),
+            Some(slots) => conv3x3_relu_forward(conv, x, slots.get(i)),
             None => burn::tensor::activation::relu(conv.forward(x)),
         };
         out[i] = Some(x.clone());
