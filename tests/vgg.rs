@@ -316,3 +316,48 @@ fn real_weights_match_objects_across_views() {
     assert!(real >= 0.85, "real weights: {real:.3}");
     assert!(real - random >= 0.15, "real {real:.3} vs random {random:.3}");
 }
+
+/// The prepared-weights path of a frozen layer (`conv3x3_relu_forward` with
+/// a slot: `Vgg16`'s) against Burn's `conv2d` + ReLU: the output, the input
+/// gradient and the bias gradient to 1e-4 relative (1e-3 on wgpu), on a
+/// batch of two images with odd sides; the slot is filled once on the CPU
+/// backends (wgpu runs Burn's convolution and leaves it empty), and a
+/// second call through the filled slot gives the same output.
+#[test]
+fn prepared_conv3x3_matches_burns_conv2d() {
+    use burn::nn::PaddingConfig2d;
+    use burn::nn::conv::Conv2dConfig;
+    use refnpr::vgg::conv_op::{PreparedSlot, conv3x3_relu_forward};
+    let device = common::backend().autodiff_device();
+    device.seed(9);
+    let (n, c, k, h, w) = (2, 6, 5, 11, 9);
+    let conv = Conv2dConfig::new([c, k], [3, 3]).with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1)).init(&device);
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let mut values = |shape: [usize; 4]| {
+        let len = shape.iter().product();
+        floats((0..len).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect(), shape, &device)
+    };
+    let x = values([n, c, h, w]);
+    let upstream = values([n, k, h, w]);
+    let slot = PreparedSlot::new();
+    let run = |prepared: Option<&PreparedSlot>| {
+        let x = x.clone().require_grad();
+        let y = match prepared {
+            Some(_) => conv3x3_relu_forward(&conv, x.clone(), prepared),
+            None => burn::tensor::activation::relu(conv.forward(x.clone())),
+        };
+        let grads = (y.clone() * upstream.clone()).sum().backward();
+        let bias = conv.bias.as_ref().expect("bias").val();
+        [to_vec(y), to_vec(x.grad(&grads).expect("input gradient")), to_vec(bias.grad(&grads).expect("bias gradient"))]
+    };
+    let (ours, burn) = (run(Some(&slot)), run(None));
+    for (name, (a, b)) in ["output", "input gradient", "bias gradient"].iter().zip(ours.iter().zip(&burn)) {
+        let err = max_rel_err(a, b);
+        println!("{name}: max rel err {err:.2e}");
+        assert!(b.iter().any(|v| v.abs() > 0.0), "{name}: reference is zero");
+        assert!(err <= common::tol(1e-4), "{name}: max rel err {err:.2e}");
+    }
+    let host = refnpr::util::tensor::is_host_memory(&device);
+    assert_eq!(slot.get().is_some(), host, "the slot is filled on the CPU backends only");
+    assert_eq!(run(Some(&slot))[0], ours[0], "a second call through the filled slot");
+}
