@@ -70,47 +70,35 @@ mod host_op {
         ) -> FloatTensor<Self>;
     }
 
+    /// The two CPU backends run the operation alike, on host memory.
+    macro_rules! host_backend {
+        ($backend:ty) => {
+            impl Conv3x3Backend for $backend {
+                fn conv3x3(
+                    x: FloatTensor<Self>,
+                    weight: FloatTensor<Self>,
+                    bias: FloatTensor<Self>,
+                    relu: bool,
+                ) -> FloatTensor<Self> {
+                    host_forward::<Self>(x, weight, bias, relu)
+                }
+
+                fn conv3x3_prepared(
+                    x: FloatTensor<Self>,
+                    bias: FloatTensor<Self>,
+                    weights: Arc<PreparedWeights>,
+                    relu: bool,
+                ) -> FloatTensor<Self> {
+                    host_forward_prepared::<Self>(x, bias, &weights, relu)
+                }
+            }
+        };
+    }
+
     #[cfg(feature = "flex")]
-    impl Conv3x3Backend for Flex {
-        fn conv3x3(
-            x: FloatTensor<Self>,
-            weight: FloatTensor<Self>,
-            bias: FloatTensor<Self>,
-            relu: bool,
-        ) -> FloatTensor<Self> {
-            host_forward::<Self>(x, weight, bias, relu)
-        }
-
-        fn conv3x3_prepared(
-            x: FloatTensor<Self>,
-            bias: FloatTensor<Self>,
-            weights: Arc<PreparedWeights>,
-            relu: bool,
-        ) -> FloatTensor<Self> {
-            host_forward_prepared::<Self>(x, bias, &weights, relu)
-        }
-    }
-
+    host_backend!(Flex);
     #[cfg(feature = "ndarray")]
-    impl Conv3x3Backend for NdArray {
-        fn conv3x3(
-            x: FloatTensor<Self>,
-            weight: FloatTensor<Self>,
-            bias: FloatTensor<Self>,
-            relu: bool,
-        ) -> FloatTensor<Self> {
-            host_forward::<Self>(x, weight, bias, relu)
-        }
-
-        fn conv3x3_prepared(
-            x: FloatTensor<Self>,
-            bias: FloatTensor<Self>,
-            weights: Arc<PreparedWeights>,
-            relu: bool,
-        ) -> FloatTensor<Self> {
-            host_forward_prepared::<Self>(x, bias, &weights, relu)
-        }
-    }
+    host_backend!(NdArray);
 
     /// The backward step: the kernel's input, weight and bias gradients.
     #[derive(Debug)]
