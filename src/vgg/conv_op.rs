@@ -227,19 +227,9 @@ mod host_op {
         bias: FloatTensor<B>,
         relu: bool,
     ) -> FloatTensor<B> {
-        let device = x.device();
-        let (xs, x_dims) = to_host::<B>(x);
         let (w, w_dims) = to_host::<B>(weight);
-        let (b, _) = to_host::<B>(bias);
-        assert_eq!(x_dims.len(), 4, "conv3x3 takes [N, C, H, W] input, got {x_dims:?}");
-        assert_eq!(
-            &w_dims[1..],
-            [x_dims[1], 3, 3],
-            "conv3x3 weights [K, C, 3, 3] for input {x_dims:?}, got {w_dims:?}"
-        );
-        let weights = WinogradWeights::new(&w, w_dims[0], w_dims[1]);
-        let y = kernel::forward(&xs, dims(&x_dims), &weights, Some(&b), relu);
-        from_host::<B>(y, vec![x_dims[0], w_dims[0], x_dims[2], x_dims[3]], &device)
+        assert!(w_dims.len() == 4 && w_dims[2..] == [3, 3], "conv3x3 weights [K, C, 3, 3], got {w_dims:?}");
+        host_forward_with::<B>(x, bias, &WinogradWeights::new(&w, w_dims[0], w_dims[1]), relu)
     }
 
     /// The prepared forward on host memory.
@@ -249,14 +239,24 @@ mod host_op {
         weights: &PreparedWeights,
         relu: bool,
     ) -> FloatTensor<B> {
+        host_forward_with::<B>(x, bias, weights.forward(), relu)
+    }
+
+    /// The kernel's forward with weights already in the Winograd domain.
+    fn host_forward_with<B: Backend>(
+        x: FloatTensor<B>,
+        bias: FloatTensor<B>,
+        weights: &WinogradWeights,
+        relu: bool,
+    ) -> FloatTensor<B> {
         let device = x.device();
         let (xs, x_dims) = to_host::<B>(x);
         let (b, _) = to_host::<B>(bias);
         assert_eq!(x_dims.len(), 4, "conv3x3 takes [N, C, H, W] input, got {x_dims:?}");
-        let forward = weights.forward();
-        assert_eq!(x_dims[1], forward.in_channels(), "conv3x3 input {x_dims:?} for {weights:?}");
-        let y = kernel::forward(&xs, dims(&x_dims), forward, Some(&b), relu);
-        from_host::<B>(y, vec![x_dims[0], forward.out_channels(), x_dims[2], x_dims[3]], &device)
+        let (k, c) = (weights.out_channels(), weights.in_channels());
+        assert_eq!(x_dims[1], c, "conv3x3 weights [{k}, {c}, 3, 3] for input {x_dims:?}");
+        let y = kernel::forward(&xs, dims(&x_dims), weights, Some(&b), relu);
+        from_host::<B>(y, vec![x_dims[0], k, x_dims[2], x_dims[3]], &device)
     }
 
     fn dims(shape: &[usize]) -> Dims {
