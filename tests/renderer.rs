@@ -450,3 +450,30 @@ fn wgpu_names_its_adapter_and_warns_on_a_cpu() {
         assert!(matches!(&events[1], Event::Warning(w) if w.contains("--backend flex")), "{events:?}");
     }
 }
+
+/// `neighbour_rows` gives, for every row, the rows of the lattice points
+/// one step along +x, +y and +z: None past the lattice's end and at empty
+/// points; `neighbour_row` gives the same axis by axis.
+#[test]
+fn neighbour_rows_are_the_rows_of_the_next_lattice_points() {
+    let geo = GridGeometry::new([3, 4, 5], Vec3::splat(-1.0), Vec3::splat(1.0));
+    // Every third point empty; rows in reverse lattice order.
+    let coords: Vec<u32> = (0..60u32).filter(|p| p % 3 != 1).rev().collect();
+    let n = coords.len();
+    let grid = RadianceGrid::from_rows(geo, 0, coords.clone(), vec![0.1; n], vec![0.0; n * 3], &common::device());
+    let row_of = |point: usize| coords.iter().position(|&c| c as usize == point).map(|r| r as i32);
+    let (mut inside, mut empty) = (0, 0);
+    for (row, &point) in coords.iter().enumerate() {
+        let ijk = geo.unflat(point as usize);
+        let want: [Option<i32>; 3] = std::array::from_fn(|axis| {
+            let mut next = ijk;
+            next[axis] += 1;
+            (next[axis] < geo.res[axis]).then(|| row_of(geo.flat(next[0], next[1], next[2]))).flatten()
+        });
+        inside += want.iter().flatten().count();
+        empty += (0..3).filter(|&a| ijk[a] + 1 < geo.res[a] && want[a].is_none()).count();
+        assert_eq!(grid.neighbour_rows(row), want, "row {row} at {ijk:?}");
+        assert!((0..3).all(|axis| grid.neighbour_row(row, axis) == want[axis]), "row {row}");
+    }
+    assert!(inside > 20 && empty > 20, "the grid has both kinds: {inside} neighbours, {empty} empty");
+}

@@ -293,14 +293,23 @@ impl RadianceGrid {
     /// The row of the lattice point next to row `row`'s point along +`axis`
     /// (0, 1, 2 = x, y, z); None past the lattice or where that point is empty.
     pub fn neighbour_row(&self, row: usize, axis: usize) -> Option<i32> {
+        self.neighbour_rows(row)[axis]
+    }
+
+    /// `neighbour_row` along the +x, +y and +z axes, from one read of the
+    /// row's lattice point and one split of it into coordinates.
+    pub fn neighbour_rows(&self, row: usize) -> [Option<i32>; 3] {
         let geo = &self.geometry;
-        let mut ijk = geo.unflat(self.coords[row] as usize);
-        ijk[axis] += 1;
-        if ijk[axis] >= geo.res[axis] {
-            return None;
-        }
-        let nb = self.links[geo.flat(ijk[0], ijk[1], ijk[2])];
-        (nb >= 0).then_some(nb)
+        let point = self.coords[row] as usize;
+        let ijk = geo.unflat(point);
+        let strides = [geo.res[1] * geo.res[2], geo.res[2], 1];
+        std::array::from_fn(|axis| {
+            if ijk[axis] + 1 >= geo.res[axis] {
+                return None;
+            }
+            let nb = self.links[point + strides[axis]];
+            (nb >= 0).then_some(nb)
+        })
     }
 
     pub fn device(&self) -> Device {

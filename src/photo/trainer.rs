@@ -33,7 +33,7 @@ use crate::scene::data::Dataset;
 use crate::util::backend::max_buffer_bytes;
 use crate::util::profile::StepProfile;
 use crate::util::rng::{Stream, step_rng};
-use crate::util::rows_op::read_rows_into;
+use crate::util::rows_op::{PREFETCH_AHEAD, read_rows_into};
 use crate::util::tensor::{floats, indices, scalar, select_rows, to_vec};
 use crate::util::transfer::human_bytes;
 
@@ -128,25 +128,33 @@ fn step_rows(
     tv_fraction: f32,
     rng: &mut ChaCha8Rng,
 ) -> TvNeighbours {
-    subset.reset_to(grid.num_rows(), corner_rows);
-    let touched = subset.rows().len();
-    let num_core = ((touched as f32 * tv_fraction).ceil() as usize).min(touched);
-    for i in 0..num_core {
-        let j = rng.random_range(i..touched);
-        subset.swap(i, j);
-    }
+    // The random subset is drawn on the rows alone, before the subset
+    // writes its map (one write per row instead of two per move).
+    let mut num_core = 0;
+    subset.reset_to_arranged(grid.num_rows(), corner_rows, |rows| {
+        let touched = rows.len();
+        num_core = ((touched as f32 * tv_fraction).ceil() as usize).min(touched);
+        for i in 0..num_core {
+            let j = rng.random_range(i..touched);
+            rows.swap(i, j);
+        }
+    });
     // The grid lookups (random reads of the links) in parallel; the
-    // insertions, which number the new rows, in order.
+    // insertions, which number the new rows, in order, each row's entry of
+    // the map asked for a few centres ahead.
     let grid_neighbours: Vec<[Option<i32>; 3]> = subset.rows()[..num_core]
         .par_iter()
         .with_min_len(1 << 12)
-        .map(|&row| std::array::from_fn(|axis| grid.neighbour_row(row as usize, axis)))
+        .map(|&row| grid.neighbour_rows(row as usize))
         .collect();
     let mut neighbours: [Vec<i32>; 3] = std::array::from_fn(|_| Vec::with_capacity(num_core));
-    for (li, found) in grid_neighbours.into_iter().enumerate() {
+    for (li, found) in grid_neighbours.iter().enumerate() {
+        for nb in grid_neighbours.get(li + PREFETCH_AHEAD).into_iter().flatten().flatten() {
+            subset.prefetch(*nb);
+        }
         for (list, nb) in neighbours.iter_mut().zip(found) {
             list.push(match nb {
-                Some(nb) => subset.insert(nb),
+                Some(nb) => subset.insert(*nb),
                 None => li as i32,
             });
         }
@@ -324,6 +332,9 @@ impl Trainer {
     /// run on the host values, and the grid and its averages get one
     /// row-add each. The same numbers as `graph_step` up to the order of
     /// floating-point sums (test `host_training_step_matches_the_graph_step`).
+    /// Its profile parts: "gradient" is the render and the MSE's gradient,
+    /// "update" the TV terms and RMSprop (the SH's TV loop runs beside the
+    /// density's update).
     fn host_step(
         &mut self,
         batch: &SampleBatch,
@@ -343,7 +354,7 @@ impl Trainer {
             read_rows_into(&self.grid.sh, subset.rows(), rows_t, &mut buf.sh);
             buf.corners.clear();
             buf.corners.par_extend(batch.corner_rows.par_iter().with_min_len(1 << 14).map(|&r| subset.local(r)));
-            let mut fit = host_fit::mse_gradient(
+            let fit = host_fit::mse_gradient(
                 &buf.density,
                 &buf.sh,
                 self.grid.num_basis(),
@@ -353,35 +364,39 @@ impl Trainer {
                 self.background,
                 &mut self.fit_buffers,
             );
-            let o = &self.config.optim;
-            if local.num_core > 0 {
-                let per_row = 1.0 / local.num_core as f32;
-                if o.tv_density > 0.0 {
-                    add_tv_gradient_per_channel(
-                        &buf.density,
-                        1,
-                        &local.neighbours,
-                        o.tv_density * per_row,
-                        &mut fit.density,
-                    );
-                }
-                if o.tv_sh > 0.0 {
-                    add_tv_gradient_per_channel(&buf.sh, stride, &local.neighbours, o.tv_sh * per_row, &mut fit.sh);
-                }
-            }
             (fit.mse as f32, fit)
         });
         profile.time("update", || {
             let (lr_d, lr_s) = self.learning_rates();
-            let rmsprop = self.rmsprop();
-            let rows = self.subset.rows();
-            rmsprop.host_step_rows(&mut self.grid.density, &mut self.state.density, rows, rows_t, &grads.density, lr_d);
-            rmsprop.host_step_rows(&mut self.grid.sh, &mut self.state.sh, rows, rows_t, &grads.sh, lr_s);
-            // The host copy of the densities takes the rows' new values.
-            read_rows_into(&self.grid.density, rows, rows_t, &mut grads.density);
-            for (&r, &v) in rows.iter().zip(&grads.density) {
-                self.grid.density_cpu[r as usize] = v;
-            }
+            let (rmsprop, o) = (self.rmsprop(), &self.config.optim);
+            let (rows, buf, nbs) = (self.subset.rows(), &self.step_buffers, &local.neighbours);
+            let (grid, state) = (&mut self.grid, &mut self.state);
+            let per_row = 1.0 / local.num_core.max(1) as f32;
+            let with_tv = |weight: f32| weight > 0.0 && local.num_core > 0;
+            let (grad_density, grad_sh) = (&mut grads.density, &mut grads.sh);
+            // The density's TV terms, update and host copy, and the SH's TV
+            // terms (a serial loop that waits on memory) touch separate
+            // buffers: side by side.
+            rayon::join(
+                || {
+                    if with_tv(o.tv_density) {
+                        let scale = o.tv_density * per_row;
+                        add_tv_gradient_per_channel(&buf.density, 1, nbs, scale, grad_density);
+                    }
+                    rmsprop.host_step_rows(&mut grid.density, &mut state.density, rows, rows_t, grad_density, lr_d);
+                    // The host copy of the densities takes the rows' new values.
+                    read_rows_into(&grid.density, rows, rows_t, grad_density);
+                    for (&r, &v) in rows.iter().zip(grad_density.iter()) {
+                        grid.density_cpu[r as usize] = v;
+                    }
+                },
+                || {
+                    if with_tv(o.tv_sh) {
+                        add_tv_gradient_per_channel(&buf.sh, stride, nbs, o.tv_sh * per_row, grad_sh);
+                    }
+                },
+            );
+            rmsprop.host_step_rows(&mut grid.sh, &mut state.sh, rows, rows_t, grad_sh, lr_s);
         });
         self.fit_buffers.keep(grads);
         mse

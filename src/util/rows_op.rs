@@ -329,18 +329,18 @@ mod kernel {
     /// the cache; changes no value. A row of 27 SH coefficients spans two
     /// or three cache lines.
     #[inline(always)]
-    pub fn prefetch_row(data: &[f32], row: usize, cols: usize) {
+    pub fn prefetch_row<T>(data: &[T], row: usize, cols: usize) {
         #[cfg(target_arch = "x86_64")]
         {
             use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-            const LINE: usize = 64 / size_of::<f32>();
+            let line = (64 / size_of::<T>()).max(1);
             let (start, end) = (row * cols, ((row + 1) * cols).min(data.len()));
-            let mut at = start - start % LINE;
+            let mut at = start - start % line;
             while at < end {
                 // SAFETY: SSE is part of x86_64's baseline, and a prefetch
                 // of an address inside `data` only warms the cache.
                 unsafe { _mm_prefetch::<_MM_HINT_T0>(data[at..].as_ptr().cast()) };
-                at += LINE;
+                at += line;
             }
         }
         #[cfg(not(target_arch = "x86_64"))]
