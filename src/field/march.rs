@@ -314,6 +314,14 @@ impl LatticeRay {
 /// Rays marched per rayon task by `Marcher::samples`.
 const RAYS_PER_TASK: usize = 256;
 
+/// Appends each piece's `field` to `out`, in piece order.
+fn concat_into<T: Copy>(out: &mut Vec<T>, pieces: &[SampleBatch], field: impl Fn(&SampleBatch) -> &Vec<T>) {
+    out.reserve(pieces.iter().map(|p| field(p).len()).sum());
+    for piece in pieces {
+        out.extend_from_slice(field(piece));
+    }
+}
+
 impl BlockOccupancy {
     /// The empty blocks of `grid`'s rows (valid across density updates).
     pub fn of(grid: &RadianceGrid) -> Self {
@@ -489,27 +497,23 @@ impl<'a> Marcher<'a> {
         let pieces: Vec<SampleBatch> = rays.par_chunks(RAYS_PER_TASK).map(|part| self.pack(part, params)).collect();
         let b = batch;
         b.clear();
-        let total: usize = pieces.iter().map(SampleBatch::num_samples).sum();
-        b.ray_offsets.reserve(rays.len());
-        b.threshold_depth.reserve(rays.len());
-        b.corner_rows.reserve(total * 8);
-        b.corner_weights.reserve(total * 8);
-        b.colour_weights.reserve(total * 8);
-        b.t.reserve(total);
-        b.delta.reserve(total);
-        b.basis.reserve(total * self.grid.num_basis());
+        b.num_rays = rays.len();
         for piece in &pieces {
-            let base = b.t.len() as u32;
+            let base = *b.ray_offsets.last().expect("the leading 0");
             b.ray_offsets.extend(piece.ray_offsets[1..].iter().map(|o| o + base));
-            b.corner_rows.extend_from_slice(&piece.corner_rows);
-            b.corner_weights.extend_from_slice(&piece.corner_weights);
-            b.colour_weights.extend_from_slice(&piece.colour_weights);
-            b.t.extend_from_slice(&piece.t);
-            b.delta.extend_from_slice(&piece.delta);
-            b.basis.extend_from_slice(&piece.basis);
             b.threshold_depth.extend_from_slice(&piece.threshold_depth);
-            b.num_rays += piece.num_rays;
         }
+        // The per-sample arrays (tens of MB on fern) side by side, each
+        // piece in order.
+        let SampleBatch { corner_rows, corner_weights, colour_weights, t, delta, basis, .. } = b;
+        rayon::scope(|scope| {
+            scope.spawn(|_| concat_into(corner_rows, &pieces, |p| &p.corner_rows));
+            scope.spawn(|_| concat_into(corner_weights, &pieces, |p| &p.corner_weights));
+            scope.spawn(|_| concat_into(colour_weights, &pieces, |p| &p.colour_weights));
+            scope.spawn(|_| concat_into(basis, &pieces, |p| &p.basis));
+            concat_into(t, &pieces, |p| &p.t);
+            concat_into(delta, &pieces, |p| &p.delta);
+        });
     }
 
     /// Marches `rays` one after another into one batch.
