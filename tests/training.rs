@@ -71,6 +71,60 @@ fn checkpoint_round_trip_preserves_the_grid_and_renders() {
     assert!(e.contains("no checkpoint"), "{e}");
 }
 
+/// A checkpoint is streamed from the tensors in blocks of rows; its bytes
+/// are still exactly bincode's encoding of the arrays read out whole (the
+/// format `checkpoint::load` and every earlier file use), here on a grid of
+/// 3 M SH values, three blocks and a part.
+#[test]
+fn a_checkpoint_streamed_in_blocks_is_bincodes_encoding_of_its_arrays() {
+    #[derive(serde::Serialize)]
+    struct Whole {
+        meta_json: String,
+        coords: Vec<u32>,
+        density: Vec<f32>,
+        sh: Vec<f32>,
+        opt_density: Vec<f32>,
+        opt_sh: Vec<f32>,
+    }
+    let t = TempDir::new("ckpt-blocks");
+    let dev = common::device();
+    let grid = refnpr::field::grid::sphere_grid(96, &dev);
+    let n = grid.num_rows();
+    let cols = 3 * grid.num_basis();
+    assert!(n * cols > 2 << 20, "{} SH values: too few for several blocks", n * cols);
+    let opt_density = refnpr::util::tensor::floats((0..n).map(|i| i as f32 * 0.5).collect(), [n, 1], &dev);
+    let opt_sh = refnpr::util::tensor::floats((0..n * cols).map(|i| (i % 977) as f32).collect(), [n, cols], &dev);
+    let meta = checkpoint::CheckpointMeta {
+        step: 7,
+        geometry: grid.geometry,
+        sh_degree: grid.sh_degree,
+        ndc: None,
+        kind: DatasetKind::Blender,
+        background: [1.0; 3],
+        near_far: None,
+        data_dir: t.path().join("scene"),
+        config: TrainConfig::default(),
+        train_seconds: 1.5,
+    };
+    let path = t.path().join("run").join(checkpoint::CHECKPOINT_FILE);
+    checkpoint::save(&path, &meta, &grid, &opt_density, &opt_sh).unwrap();
+    let whole = Whole {
+        meta_json: serde_json::to_string(&meta).unwrap(),
+        coords: grid.coords.clone(),
+        density: to_vec(grid.density.clone()),
+        sh: to_vec(grid.sh.clone()),
+        opt_density: to_vec(opt_density.clone()),
+        opt_sh: to_vec(opt_sh.clone()),
+    };
+    let expected = [&b"REFNPRG1"[..], &bincode::serialize(&whole).unwrap()].concat();
+    let written = std::fs::read(&path).unwrap();
+    assert_eq!(written.len(), expected.len());
+    assert!(written == expected, "the streamed checkpoint differs from bincode's encoding");
+    let ck = checkpoint::load(&path, &dev).unwrap();
+    assert_eq!(to_vec(ck.opt_sh), whole.opt_sh);
+    assert_eq!(ck.meta.step, 7);
+}
+
 #[test]
 fn a_resumed_run_ends_where_an_uninterrupted_one_does() {
     let t = TempDir::new("resume");

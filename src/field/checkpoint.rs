@@ -7,11 +7,12 @@ use crate::field::grid::{GridGeometry, RadianceGrid};
 use crate::photo::config::TrainConfig;
 use crate::scene::camera::{Camera, NdcParams};
 use crate::scene::data::DatasetKind;
-use crate::util::tensor::{floats, to_vec};
-use crate::util::{diverged, files};
+use crate::util::tensor::floats;
+use crate::util::{bin_fields, files, rows_op};
 use anyhow::{Context, Result, bail};
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
@@ -35,6 +36,8 @@ pub struct CheckpointMeta {
     pub train_seconds: f64,
 }
 
+/// The file's content after its magic tag, as `files::load` reads it
+/// ([`save`] writes the same fields in this order).
 #[derive(Serialize, Deserialize)]
 struct Payload {
     meta_json: String,
@@ -87,6 +90,15 @@ pub fn resolve(path: &Path) -> PathBuf {
     if path.is_dir() { path.join(CHECKPOINT_FILE) } else { path.to_path_buf() }
 }
 
+/// Values per block when a grid-sized array is streamed into the file
+/// (4 MB: stays in cache between the read, the check and the encoding).
+const SAVE_BLOCK_VALUES: usize = 1 << 20;
+
+/// Writes a checkpoint (atomically: `files::write_atomic`). The grid and
+/// optimiser arrays go from their tensors to the file in blocks
+/// (`util::bin_fields`, the bytes bincode writes for `Payload`), each block
+/// checked for NaN and infinities on the way: a diverged field is refused
+/// and the file keeps its previous content.
 pub fn save(
     path: &Path,
     meta: &CheckpointMeta,
@@ -94,27 +106,37 @@ pub fn save(
     opt_density: &Tensor<2>,
     opt_sh: &Tensor<2>,
 ) -> Result<()> {
-    let payload = Payload {
-        meta_json: serde_json::to_string(meta)?,
-        coords: grid.coords.clone(),
-        density: to_vec(grid.density.clone()),
-        sh: to_vec(grid.sh.clone()),
-        opt_density: to_vec(opt_density.clone()),
-        opt_sh: to_vec(opt_sh.clone()),
-    };
-    let arrays = [("density", &payload.density[..]), ("SH colour", &payload.sh), ("optimiser state", &payload.opt_sh)];
-    if let Some(what) = diverged::first_non_finite(&arrays) {
-        let kept = match path.exists() {
-            true => "the file keeps its previous content",
-            false => "nothing was written",
-        };
-        bail!(
-            "refusing to write {} at step {}: the field's {what} holds NaN or infinite values (the run diverged); {kept}",
-            path.display(),
-            meta.step
-        );
-    }
-    files::save(path, MAGIC, &payload)
+    let meta_json = serde_json::to_string(meta)?;
+    let arrays = [
+        ("density", &grid.density),
+        ("SH colour", &grid.sh),
+        ("optimiser state", opt_density),
+        ("optimiser state", opt_sh),
+    ];
+    let nothing_kept = if path.exists() { "" } else { "; nothing was written" };
+    files::write_atomic(path, |w| {
+        let io = |e| files::io_error(e, path);
+        let mut scratch = Vec::new();
+        w.write_all(MAGIC).map_err(io)?;
+        bin_fields::write_str(w, &meta_json).map_err(io)?;
+        bin_fields::write_len(w, grid.coords.len()).map_err(io)?;
+        bin_fields::write_values(w, &grid.coords, u32::to_le_bytes, &mut scratch).map_err(io)?;
+        for (what, values) in arrays {
+            bin_fields::write_len(w, values.shape().num_elements()).map_err(io)?;
+            rows_op::for_each_row_block(values, SAVE_BLOCK_VALUES, |block| {
+                if !block.iter().fold(true, |finite, v| finite & v.is_finite()) {
+                    bail!(
+                        "refusing to write {} at step {}: the field's {what} holds NaN or infinite values \
+                         (the run diverged){nothing_kept}",
+                        path.display(),
+                        meta.step
+                    );
+                }
+                bin_fields::write_values(w, block, f32::to_le_bytes, &mut scratch).map_err(io)
+            })?;
+        }
+        Ok(())
+    })
 }
 
 pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {

@@ -117,12 +117,18 @@ impl GridGeometry {
         )
     }
 
+    /// How far apart in flat indices (`flat`) the lattice's neighbours are
+    /// along x, y and z.
+    pub fn strides(&self) -> [usize; 3] {
+        [self.res[1] * self.res[2], self.res[2], 1]
+    }
+
     /// What `corner_index(base, c)` adds to the base's own flat index, for
     /// every `base` that `trilinear_base` gives (its indices stay below
     /// `res - 1` on axes longer than one point; on a one-point axis the
     /// `+1` corner is clamped back onto the base).
     pub fn corner_offsets(&self) -> [usize; 8] {
-        let stride = [self.res[1] * self.res[2], self.res[2], 1];
+        let stride = self.strides();
         let step = |axis: usize, bit: usize| if bit == 1 && self.res[axis] > 1 { stride[axis] } else { 0 };
         std::array::from_fn(|c| step(0, (c >> 2) & 1) + step(1, (c >> 1) & 1) + step(2, c & 1))
     }
@@ -302,7 +308,7 @@ impl RadianceGrid {
         let geo = &self.geometry;
         let point = self.coords[row] as usize;
         let ijk = geo.unflat(point);
-        let strides = [geo.res[1] * geo.res[2], geo.res[2], 1];
+        let strides = geo.strides();
         std::array::from_fn(|axis| {
             if ijk[axis] + 1 >= geo.res[axis] {
                 return None;

@@ -141,6 +141,25 @@ fn take(slot: &mut Tensor<2>) -> Tensor<2> {
     std::mem::replace(slot, Tensor::zeros([1, 1], &device))
 }
 
+/// Appends to `out`, in order, the rows of `rows` not yet marked in the
+/// bitmap `seen` (one bit per row of a grid of `num_rows`), marking them.
+/// Without branches (whether a row is new is a coin toss to the
+/// processor): every row is written, and the count moves past the new ones.
+fn append_new(rows: &[i32], num_rows: usize, seen: &mut [u64], out: &mut Vec<i32>) {
+    let start = out.len();
+    out.resize(start + rows.len(), 0);
+    let mut count = start;
+    for &r in rows {
+        assert!(r >= 0 && (r as usize) < num_rows, "row {r} out of range for {num_rows} rows");
+        let (word, bit) = (r as usize / 64, 1u64 << (r % 64));
+        let marks = seen[word];
+        out[count] = r;
+        count += usize::from(marks & bit == 0);
+        seen[word] = marks | bit;
+    }
+    out.truncate(count);
+}
+
 /// How total variation combines the channels of a voxel.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum TvNorm {
@@ -281,10 +300,6 @@ impl RowSubset {
     /// that moves many rows saves the map's random writes of each move.
     pub fn reset_to_arranged(&mut self, num_rows: usize, rows: &[i32], arrange: impl FnOnce(&mut [i32])) {
         self.clear(num_rows);
-        let check = |r: i32| {
-            assert!(r >= 0 && (r as usize) < num_rows, "row {r} out of range for {num_rows} rows");
-            (r as usize / 64, 1u64 << (r % 64))
-        };
         let piece_len = rows.len().div_ceil(rayon::current_num_threads()).max(MIN_PIECE);
         let pieces = rows.len().div_ceil(piece_len);
         if pieces == 0 {
@@ -298,36 +313,14 @@ impl RowSubset {
         scratch.zip(rows.par_chunks(piece_len)).for_each(|((seen, distinct), piece)| {
             seen.clear();
             seen.resize(words, 0);
-            // Without branches (whether a row is new is a coin toss to the
-            // processor): every row is written, and the count moves past
-            // the new ones.
             distinct.clear();
-            distinct.resize(piece.len(), 0);
-            let mut count = 0;
-            for &r in piece {
-                let (word, bit) = check(r);
-                let marks = seen[word];
-                distinct[count] = r;
-                count += usize::from(marks & bit == 0);
-                seen[word] = marks | bit;
-            }
-            distinct.truncate(count);
+            append_new(piece, num_rows, seen, distinct);
         });
         // The first piece's rows are all new; its bitmap becomes the union.
         let union = &mut self.piece_seen[0];
         self.rows.extend_from_slice(&self.piece_rows[0]);
         for later in &self.piece_rows[1..pieces] {
-            let start = self.rows.len();
-            self.rows.resize(start + later.len(), 0);
-            let mut count = start;
-            for &r in later {
-                let (word, bit) = (r as usize / 64, 1u64 << (r % 64));
-                let marks = union[word];
-                self.rows[count] = r;
-                count += usize::from(marks & bit == 0);
-                union[word] = marks | bit;
-            }
-            self.rows.truncate(count);
+            append_new(later, num_rows, union, &mut self.rows);
         }
         arrange(&mut self.rows);
         // Distinct rows: each entry of the map is written once.

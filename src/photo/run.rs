@@ -77,11 +77,19 @@ pub fn run_training(
     files::write_toml(&out.join("config.toml"), &trainer.config)?;
     let started = Instant::now();
     let (mut transfers, loss_curve) = fit(&mut trainer, dataset, out, progress)?;
-    trainer.save(dataset, out)?;
     progress.event(Event::PhaseDone { phase: Phase::Fit, seconds: started.elapsed().as_secs_f64() });
-    progress.info(format!("evaluating {} test views", dataset.test.len()));
-    let m =
-        transfer::measure(|| evaluate(&trainer.grid, dataset, &dataset.test, &trainer.config, Some(&out.join("test"))));
+    progress.info(format!("evaluating {} test views, writing the checkpoint meanwhile", dataset.test.len()));
+    // The final checkpoint and the test renders only read the field: the
+    // write, which mostly waits on the disk (a fern checkpoint is 1.3 GB),
+    // runs beside the renders.
+    let write_checkpoint = trainer.checkpoint_writer(dataset);
+    let (saved, m) = std::thread::scope(|s| {
+        let save = s.spawn(|| write_checkpoint(out));
+        let test = Some(out.join("test"));
+        let m = transfer::measure(|| evaluate(&trainer.grid, dataset, &dataset.test, &trainer.config, test.as_deref()));
+        (save.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)), m)
+    });
+    saved?;
     let report = m.value?;
     progress.event(Event::PhaseDone { phase: Phase::Evaluate, seconds: m.seconds });
     transfers.insert("evaluate".into(), PhaseTransfers::new(m.moved, dataset.test.len()));

@@ -458,13 +458,17 @@ impl Trainer {
         }
     }
 
+    /// Writes this run's checkpoint into `out`.
     pub fn save(&self, dataset: &Dataset, out: &Path) -> Result<()> {
-        checkpoint::save(
-            &out.join(checkpoint::CHECKPOINT_FILE),
-            &self.meta(dataset),
-            &self.grid,
-            &self.state.density,
-            &self.state.sh,
-        )
+        self.checkpoint_writer(dataset)(out)
+    }
+
+    /// [`save`](Self::save) as a closure that borrows only the field and
+    /// its optimiser state (the trainer's step buffers cannot be shared
+    /// between threads), so the write can run on another thread beside
+    /// renders of the field.
+    pub fn checkpoint_writer(&self, dataset: &Dataset) -> impl FnOnce(&Path) -> Result<()> + Send + '_ {
+        let (meta, grid, state) = (self.meta(dataset), &self.grid, &self.state);
+        move |out| checkpoint::save(&out.join(checkpoint::CHECKPOINT_FILE), &meta, grid, &state.density, &state.sh)
     }
 }

@@ -3,6 +3,7 @@
 //! on failure, one run per output folder, progress events, per-step random generators, memory readings, host-device traffic counts, per-part step timings, reused buffers.
 
 pub mod backend;
+pub mod bin_fields;
 pub mod config;
 pub mod diverged;
 pub mod files;

@@ -392,6 +392,37 @@ pub fn read_rows_into(tensor: &Tensor<2>, rows: &[i32], rows_t: &Tensor<1, Int>,
     out.copy_from_slice(&read_rows(tensor, rows, rows_t));
 }
 
+/// Calls `f` with `tensor`'s values (row-major) in blocks of whole rows,
+/// about `block_values` values each, in order, through one buffer reused
+/// from block to block: reading out a grid-sized tensor (a checkpoint save)
+/// without a grid-sized copy. Stops at `f`'s first error.
+pub fn for_each_row_block<E>(
+    tensor: &Tensor<2>,
+    block_values: usize,
+    mut f: impl FnMut(&[f32]) -> Result<(), E>,
+) -> Result<(), E> {
+    let [num_rows, cols] = tensor.dims();
+    let blocks = super::chunk_ranges(num_rows, (block_values / cols.max(1)).max(1));
+    #[cfg(any(feature = "flex", feature = "ndarray"))]
+    if is_host_memory(&tensor.device()) {
+        let t = tensor.clone().into_dispatch();
+        let (mut rows, mut values) = (Vec::new(), Vec::new());
+        for (start, len) in blocks {
+            rows.clear();
+            rows.extend(start as i32..(start + len) as i32);
+            values.truncate(len * cols);
+            values.resize(len * cols, 0.0);
+            <burn::backend::Dispatch as RowsBackend>::read_rows_into(&t, &rows, &mut values);
+            f(&values)?;
+        }
+        return Ok(());
+    }
+    for (start, len) in blocks {
+        f(&to_vec(tensor.clone().narrow(0, start, len)))?;
+    }
+    Ok(())
+}
+
 /// Applies `update(k, a_row, b_row)` to rows `rows[k]` of `a` and `b` (two
 /// tensors of one shape; `rows_t` the same indices as a tensor): in place
 /// and in parallel on flex, by reading the rows out and assigning them back
