@@ -122,7 +122,18 @@ fn a_checkpoint_streamed_in_blocks_is_bincodes_encoding_of_its_arrays() {
     assert!(written == expected, "the streamed checkpoint differs from bincode's encoding");
     let ck = checkpoint::load(&path, &dev).unwrap();
     assert_eq!(to_vec(ck.opt_sh), whole.opt_sh);
+    assert_eq!(to_vec(ck.opt_density), whole.opt_density);
     assert_eq!(ck.meta.step, 7);
+    // Without the optimiser state: the same field, the state passed over.
+    let ck = checkpoint::load_with(&path, &dev, false).unwrap();
+    assert_eq!((ck.grid.coords, to_vec(ck.grid.sh)), (whole.coords, whole.sh));
+    assert_eq!((ck.opt_density.dims(), ck.opt_sh.dims()), ([0, 1], [0, cols]));
+    // Cut short inside the optimiser state: corrupt, either way.
+    std::fs::write(&path, &written[..written.len() - 5]).unwrap();
+    for state in [true, false] {
+        let e = format!("{:#}", checkpoint::load_with(&path, &dev, state).err().unwrap());
+        assert!(e.contains("is corrupt"), "{e}");
+    }
 }
 
 #[test]

@@ -12,7 +12,7 @@ use crate::util::{bin_fields, files, rows_op};
 use anyhow::{Context, Result, bail};
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
-use std::io::Write;
+use std::io::{self, BufRead, Seek, Write};
 use std::path::{Path, PathBuf};
 
 pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
@@ -36,9 +36,9 @@ pub struct CheckpointMeta {
     pub train_seconds: f64,
 }
 
-/// The file's content after its magic tag, as `files::load` reads it
-/// ([`save`] writes the same fields in this order).
-#[derive(Serialize, Deserialize)]
+/// The file's content after its magic tag: bincode's layout of these
+/// fields, in this order ([`save`] writes them, [`read_payload`] reads
+/// them, `util::bin_fields`).
 struct Payload {
     meta_json: String,
     coords: Vec<u32>,
@@ -151,11 +151,9 @@ pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<
     if !path.exists() {
         bail!("no checkpoint at {} (train one with `refnpr train`)", path.display());
     }
-    let mut p: Payload = files::load(&path, MAGIC, "a refnpr checkpoint")?;
-    if !optimiser_state {
-        p.opt_density = Vec::new();
-        p.opt_sh = Vec::new();
-    }
+    let (file, len) = files::open_tagged(&path, MAGIC, "a refnpr checkpoint")?;
+    let fields = bin_fields::FieldReader::new(file, len);
+    let p = read_payload(fields, optimiser_state).with_context(|| format!("{} is corrupt", path.display()))?;
     let meta: CheckpointMeta =
         serde_json::from_str(&p.meta_json).with_context(|| format!("{}: corrupt metadata", path.display()))?;
     let n = p.coords.len();
@@ -182,6 +180,27 @@ pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<
         )
     };
     Ok(Checkpoint { source: path, meta, grid, opt_density, opt_sh })
+}
+
+/// The file's fields, read straight into their vectors (`bin_fields`);
+/// without `optimiser_state` its two arrays are passed over, not read.
+fn read_payload(mut r: bin_fields::FieldReader<impl BufRead + Seek>, optimiser_state: bool) -> io::Result<Payload> {
+    let mut p = Payload {
+        meta_json: r.read_str()?,
+        coords: r.read_vec(u32::from_le_bytes)?,
+        density: r.read_vec(f32::from_le_bytes)?,
+        sh: r.read_vec(f32::from_le_bytes)?,
+        opt_density: Vec::new(),
+        opt_sh: Vec::new(),
+    };
+    if optimiser_state {
+        p.opt_density = r.read_vec(f32::from_le_bytes)?;
+        p.opt_sh = r.read_vec(f32::from_le_bytes)?;
+    } else {
+        r.skip_vec::<4>()?;
+        r.skip_vec::<4>()?;
+    }
+    Ok(p)
 }
 
 /// A checkpoint (without optimiser state: for rendering and R³) and the

@@ -8,7 +8,7 @@
 //! huge allocation.
 
 use std::fs::File;
-use std::io::{BufWriter, Read, Write};
+use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
@@ -93,14 +93,21 @@ pub fn save<T: Serialize>(path: &Path, magic: &[u8; 8], value: &T) -> Result<()>
 /// Reads a file written by `save`; `what` names the kind in errors
 /// ("a refnpr checkpoint").
 pub fn load<T: DeserializeOwned>(path: &Path, magic: &[u8; 8], what: &str) -> Result<T> {
+    let (mut reader, limit) = open_tagged(path, magic, what)?;
+    options(limit).deserialize_from(&mut reader).with_context(|| format!("{} is corrupt", path.display()))
+}
+
+/// Opens a file written by `save` (or in its layout, `util::bin_fields`)
+/// past its magic tag; with the file's size, the most its payload can hold.
+pub fn open_tagged(path: &Path, magic: &[u8; 8], what: &str) -> Result<(BufReader<File>, u64)> {
     let file = File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let limit = file.metadata().map(|m| m.len()).unwrap_or(0);
-    let mut reader = std::io::BufReader::new(file);
+    let size = file.metadata().map(|m| m.len()).unwrap_or(0);
+    let mut reader = BufReader::new(file);
     let mut tag = [0u8; 8];
     if reader.read_exact(&mut tag).is_err() || &tag != magic {
         bail!("{} is not {what}", path.display());
     }
-    options(limit).deserialize_from(&mut reader).with_context(|| format!("{} is corrupt", path.display()))
+    Ok((reader, size.saturating_sub(8)))
 }
 
 /// Creates `dir` and its parents.
