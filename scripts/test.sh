@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The test suite on every backend (the README's test command).
-#   flex:    everything (unit tests, renderer, datasets, training, stylization, evaluation, demo, CLI)
+#   flex:    everything (unit tests, renderer, datasets, training, stylization, evaluation, demo, CLI), then examples/orbit.rs
 #   ndarray: renderer, grid, VGG16, the stylization losses / TCM / deferred back-propagation, the metrics, the notebook API
 #   wgpu:    the same plus training, through Mesa's software Vulkan when no GPU is present
 #   (end-to-end stylization and the demo run on flex only: VGG on lavapipe or ndarray is 10-100x slower)
@@ -12,6 +12,14 @@ export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 
 echo "== formatting"
 cargo fmt --check
+echo "== layering (imports point down the stage table of src/lib.rs)"
+python3 scripts/check_layers.py
+echo "== dependency tree: licences, bans, sources (cargo-deny, deny.toml)"
+command -v cargo-deny >/dev/null 2>&1 || {
+  echo "error: cargo-deny not found (install it with: cargo install --locked cargo-deny)" >&2
+  exit 1
+}
+cargo deny --log-level error check licenses bans sources
 # Lints: clippy is the compiler of our own crate in every build below (what
 # `cargo clippy` itself does: cargo's RUSTC_WORKSPACE_WRAPPER), so the
 # tests' build is the lint pass too, over every target and backend, without
@@ -26,6 +34,10 @@ export CLIPPY_ARGS="-D__CLIPPY_HACKERY__warnings__CLIPPY_HACKERY__"
 echo "== flex: full suite"
 REFNPR_BACKEND=flex cargo test --all-targets
 
+echo "== the front API's example: procedural scene to stylized orbit (flex)"
+REFNPR_BACKEND=flex cargo run --example orbit -- target/example-orbit
+test -s target/example-orbit/orbit/path.gif
+
 STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input --skip robustness --skip a_killed_stylization)
 
 echo "== ndarray: renderer, grid, VGG16, stylization units, metrics"
@@ -34,6 +46,8 @@ REFNPR_BACKEND=ndarray cargo test --test stylize -- "${STYLIZE_UNITS[@]}"
 
 echo "== wgpu: renderer, training, VGG16, stylization units, metrics"
 REFNPR_BACKEND=wgpu cargo test --test renderer --test training --test vgg --test evaluation --test notebook
+# The plain-Rust kernels against the Burn graph (unit tests inside the crate).
+REFNPR_BACKEND=wgpu cargo test --lib graph_oracle
 REFNPR_BACKEND=wgpu cargo test --test stylize -- "${STYLIZE_UNITS[@]}"
 
 DATA="${REFNPR_SHARED_DATA:-../shared/data}"

@@ -3,16 +3,29 @@
 //!
 //! | module | stage |
 //! | --- | --- |
+//! | `util` | backend choice, tensor helpers, the one `Image` type and its files, the image metrics (PSNR, SSIM, speckle), file writes, progress events, per-step RNG, memory readings, phase costs |
 //! | `scene` | cameras, rays, NDC, camera paths, the SH basis; dataset loaders (Blender, LLFF, NSVF, the procedural scene) |
-//! | `field` | the radiance grid, ray marching (plain Rust), compositing (Burn graph), the frozen-density colour renderer, what the optimisers share (RMSprop, TV, row subsets), checkpoints |
-//! | `photo` | stage 1: fitting the photorealistic field (config, `Trainer::step_once`, the training run) |
-//! | `reference` | stage 2: reference cases and style images, R³ (plain Rust), the `reference` / `register` commands |
 //! | `vgg` | the ONNX-imported VGG16, block descriptors and nearest neighbours |
-//! | `stylize` | stage 3: Ref-NPR (R³ + TCM + colour matching) and the ARF baseline: config, losses, TCM, the style field, the `Stylizer` and its image step, the run |
-//! | `eval` | image metrics, photoreal and stylization metrics, camera-path renders |
-//! | `tools` | the benchmarks, the one-command demo, the painterly repaint filter |
-//! | `notebook` | the library as a notebook uses it: one type per stage, values that display in a Jupyter cell (evcxr) |
-//! | `util` | backend choice, tensor helpers, the one `Image` type and its files, file writes, progress events, per-step RNG, memory readings |
+//! | `field` | the radiance grid, ray marching (plain Rust), compositing (Burn graph), the view renderer (kernel chosen once), camera-path renders, the frozen-density colour renderer, what the optimisers share (RMSprop, TV, row subsets), checkpoints |
+//! | `photo` | stage 1: fitting the photorealistic field (config, `Trainer::step_once`, the training run, its test-view evaluation) |
+//! | `reference` | stage 2: reference cases and style images, R³ (plain Rust), the `reference` / `register` commands |
+//! | `stylize` | stage 3: Ref-NPR (R³ + TCM + colour matching) and the ARF baseline: config, losses, TCM, the style field, the sample cache, the step (`StyleStep`), the guides, the run (the loops) |
+//! | `eval` | the stylization metrics (Ref-LPIPS, ground-truth PSNR, warp stability, speckle) |
+//! | `tools` | the benchmarks, the one-command demo, the robustness study, the fuzzer, the painterly repaint filter |
+//! | `notebook` | the front API: one type per stage whose values display in a Jupyter cell (evcxr) |
+//!
+//! The table is the stage order: a module imports only its own stage and
+//! the ones above it (`scripts/check_layers.py`, run by the test command,
+//! reads this table and fails on an import that points down the table, or
+//! on files of one stage importing each other in a cycle). The `refnpr`
+//! binary and the examples sit above every stage.
+//!
+//! The front API, re-exported here: the stage types [`Scene`] (a dataset),
+//! [`Photo`] (a photoreal run), [`Reference`] (a reference case),
+//! [`Registered`] (R³'s registration) and [`Stylized`] (a stylized run),
+//! their configs, the backend choice and the progress sinks
+//! (`examples/orbit.rs` goes from the procedural scene to a stylized
+//! orbit through them alone).
 //!
 //! Every stage reads and writes files (dataset folder -> `RUN/checkpoint.bin`
 //! -> `CASE/` -> `registration.bin` -> `STYLE/checkpoint.bin` -> renders), so
@@ -33,5 +46,18 @@ pub mod tools;
 pub mod util;
 pub mod vgg;
 
+#[cfg(test)]
+mod test_support;
+
+pub use notebook::{
+    Error, Gallery, Photo, Plot, Reference, Registered, Scene, Stylized, Table, demo_configs, stylize_config,
+    train_config,
+};
+pub use photo::config::TrainConfig;
+pub use reference::r3::RegisterParams;
+pub use scene::camera::Camera;
+pub use stylize::Method;
+pub use stylize::config::StylizeConfig;
 pub use util::backend::BackendKind;
-pub use util::progress::{Console, Progress, Quiet};
+pub use util::image::Image;
+pub use util::progress::{Console, Event, Progress, Quiet};

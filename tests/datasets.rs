@@ -211,3 +211,39 @@ fn bad_llff_inputs_are_reported() {
     let e = err_of(t.path());
     assert!(e.contains("4 poses but 3 images"), "{e}");
 }
+
+/// Refused outside input carries a typed reason (`util::input::InputError`)
+/// inside the pipeline's `anyhow` error, so a library caller can tell a
+/// folder that is no dataset from one that is missing, a file of another
+/// kind from a corrupt one; the message a user reads stays the same.
+#[test]
+fn refused_input_has_a_typed_reason_a_caller_can_match() {
+    use refnpr::util::input::InputError;
+    let t = TempDir::new("typed-errors");
+    let p = t.path().to_path_buf();
+
+    let missing = data::load(&p.join("nope"), &LoadOptions::default()).unwrap_err();
+    assert!(matches!(InputError::of(&missing), Some(InputError::Missing { .. })), "{missing:#}");
+    assert!(missing.to_string().contains("does not exist"), "{missing:#}");
+
+    let not_a_dataset = data::load(&p, &LoadOptions::default()).unwrap_err();
+    match InputError::of(&not_a_dataset) {
+        Some(InputError::NotADataset { path, .. }) => assert_eq!(path, &p),
+        other => panic!("expected NotADataset, got {other:?}"),
+    }
+    assert!(not_a_dataset.to_string().contains("is not a dataset folder"), "{not_a_dataset:#}");
+
+    let text = p.join("checkpoint.bin");
+    std::fs::write(&text, "not a checkpoint").unwrap();
+    let wrong = refnpr::field::checkpoint::load(&text, &common::device()).err().expect("a text file is refused");
+    assert!(matches!(InputError::of(&wrong), Some(InputError::WrongKind { .. })), "{wrong:#}");
+
+    let npy_file = p.join("poses.npy");
+    std::fs::write(&npy_file, b"\x93NUMPY\x01\x00garbage").unwrap();
+    let corrupt = npy::read(&npy_file).err().expect("a cut header is refused");
+    match InputError::of(&corrupt) {
+        Some(e @ InputError::Malformed { .. }) => assert_eq!(e.path(), npy_file),
+        other => panic!("expected Malformed, got {other:?}"),
+    }
+    assert!(format!("{corrupt:#}").contains("truncated header"), "the cause stays in the chain: {corrupt:#}");
+}

@@ -17,7 +17,7 @@ fn masked_psnr_matches_hand_value() {
     let b = vec![0.3, 0.3, 0.3, 0.4, 0.4, 0.4, 0.5, 0.5, 0.5];
     let (sum, n) = evaluation::psnr_masked(&a, &b, &[true, true, false]).expect("masked pixels");
     assert_eq!(n, 6);
-    let psnr = refnpr::eval::metrics::psnr_from_mse((sum / n as f64) as f32);
+    let psnr = refnpr::util::metrics::psnr_from_mse((sum / n as f64) as f32);
     assert!((psnr - 20.0).abs() < 1e-3, "{psnr}");
     assert!(evaluation::psnr_masked(&a, &b, &[false; 3]).is_none());
 }
@@ -75,7 +75,7 @@ fn plane_view(camera: Camera, colour: &dyn Fn(Vec3) -> [f32; 3]) -> SurfaceRende
         })
         .collect();
     let rgb = points.iter().flat_map(|p| p.map(colour).unwrap_or([1.0; 3])).collect();
-    SurfaceRender { camera, image: Image::of_camera(&camera, rgb), points }
+    SurfaceRender { camera, image: camera.image_of(rgb), points }
 }
 
 const TOL: Tolerance = Tolerance { absolute: 0.05, relative: 0.0 };

@@ -111,7 +111,7 @@ fn the_notebook_stages_chain_like_the_cli() {
     let cam = scene.camera("train:3").unwrap();
     let truth = scene.truth(&cam, false).unwrap();
     let photo_rgb = &scene.dataset.train[3].rgb;
-    let psnr = refnpr::eval::metrics::psnr(&truth.rgb, photo_rgb);
+    let psnr = refnpr::util::metrics::psnr(&truth.rgb, photo_rgb);
     assert!(psnr > 40.0, "truth vs the written photo: {psnr:.1} dB (8-bit rounding only)");
     assert!(
         scene.stylized_twin().unwrap().truth(&cam, true).is_err(),

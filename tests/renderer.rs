@@ -8,6 +8,7 @@ use glam::{Mat4, Vec3};
 use refnpr::field::composite::{self as render, BatchTensors};
 use refnpr::field::grid::{GridGeometry, RadianceGrid};
 use refnpr::field::march::{self, MarchParams};
+use refnpr::field::view::{self, RenderSettings};
 use refnpr::scene::camera::{Camera, Intrinsics, Ray};
 use refnpr::scene::sh;
 use refnpr::util::tensor::{floats, to_vec};
@@ -40,8 +41,8 @@ fn homogeneous_slab_matches_beer_lambert() {
     let (sigma, c, bg) = (0.8f32, [0.9f32, 0.3, 0.1], [0.2f32, 0.4, 1.0]);
     let grid = uniform_grid(16, sigma, c, 0);
     let rays = vec![axis_ray(Vec3::new(0.1, -0.2, 5.0), -Vec3::Z), axis_ray(Vec3::new(-3.0, 0.3, 0.05), Vec3::X)];
-    let render::RaysRender { rgb, expected_depth: depth, threshold_depth: tdepth, opacity } =
-        render::render_rays(&grid, &rays, &params(0.5), bg, 1024);
+    let view::RaysRender { rgb, expected_depth: depth, threshold_depth: tdepth, opacity } =
+        view::render_rays(&grid, &rays, &RenderSettings { march: params(0.5), chunk: 1024 }, bg);
     let t_final = (-sigma * 2.0f32).exp();
     for r in 0..2 {
         for ch in 0..3 {
@@ -84,8 +85,8 @@ fn single_opaque_voxel_blocks_only_the_rays_through_it() {
     let hit = axis_ray(Vec3::new(p.x, p.y, 3.0), -Vec3::Z);
     let miss = axis_ray(Vec3::new(p.x + 0.6, p.y, 3.0), -Vec3::Z);
     let bg = [1.0, 1.0, 1.0];
-    let render::RaysRender { rgb, threshold_depth: tdepth, opacity, .. } =
-        render::render_rays(&grid, &[hit, miss], &params(0.25), bg, 64);
+    let view::RaysRender { rgb, threshold_depth: tdepth, opacity, .. } =
+        view::render_rays(&grid, &[hit, miss], &RenderSettings { march: params(0.25), chunk: 64 }, bg);
     for ch in 0..3 {
         assert!((rgb[ch] - c[ch]).abs() < 1e-3, "hit colour {:?}", &rgb[..3]);
         assert!((rgb[3 + ch] - 1.0).abs() < 1e-6, "miss colour {:?}", &rgb[3..]);
@@ -104,8 +105,8 @@ fn full_image_render_is_chunk_independent() {
         Intrinsics::from_fov_x(24, 18, 0.9),
         refnpr::scene::camera::look_at(Vec3::new(2.5, 2.0, 1.5), Vec3::ZERO, Vec3::Z),
     );
-    let a = render::render_view(&grid, &cam, None, &params(0.5), [1.0; 3], 7);
-    let b = render::render_view(&grid, &cam, None, &params(0.5), [1.0; 3], 100_000);
+    let a = view::render_view(&grid, &cam, None, &RenderSettings { march: params(0.5), chunk: 7 }, [1.0; 3]);
+    let b = view::render_view(&grid, &cam, None, &RenderSettings { march: params(0.5), chunk: 100_000 }, [1.0; 3]);
     assert_eq!(a.image.rgb.len(), 24 * 18 * 3);
     for (x, y) in a.image.rgb.iter().zip(&b.image.rgb) {
         assert!((x - y).abs() < 1e-5);
@@ -171,122 +172,6 @@ fn autodiff_gradients_match_finite_differences() {
     assert_eq!(checked, 16);
 }
 
-/// A 6³ grid over [-1, 1]³ with every third lattice point empty (inactive
-/// corners, colour weights renormalised), densities from -1 to
-/// `max_density - 1` and SH degree 2 coefficients in [-0.3, 0.3], and 40
-/// rays that hit, graze and miss it. Returns the grid, its density and SH
-/// rows, and the rays.
-fn sparse_degree2_grid(max_density: f32) -> (RadianceGrid, Vec<f32>, Vec<f32>, Vec<Ray>) {
-    let geo = GridGeometry::new([6; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
-    let nb = sh::num_basis(2);
-    let coords: Vec<u32> = (0..geo.num_points() as u32).filter(|i| i % 3 != 1).collect();
-    let n = coords.len();
-    let dens: Vec<f32> = (0..n).map(|i| -1.0 + max_density * ((i * 7919) % 13) as f32 / 13.0).collect();
-    let shd: Vec<f32> = (0..n * 3 * nb).map(|i| 0.6 * ((((i * 104_729) % 17) as f32 / 17.0) - 0.5)).collect();
-    let grid = RadianceGrid::from_rows(geo, 2, coords, dens.clone(), shd.clone(), &common::device());
-    let rays = (0..40)
-        .map(|i| {
-            let o = Vec3::new(-2.5, -1.8 + 0.09 * i as f32, 1.9 - 0.1 * i as f32);
-            axis_ray(o, Vec3::new(1.0, 0.2 + 0.01 * i as f32, -0.6 + 0.04 * i as f32))
-        })
-        .collect();
-    (grid, dens, shd, rays)
-}
-
-/// The plain-Rust renderer (`field::host_render`, what views rendered
-/// without autodiff use on the CPU backends) gives the Burn graph's
-/// colours, expected depths and opacities to 1e-5, on a sparse grid with
-/// varied density and SH degree 2, rays that hit, graze and miss.
-#[test]
-fn host_render_matches_the_graph() {
-    let (grid, dens, shd, rays) = sparse_degree2_grid(12.0);
-    let (n, nb, dev) = (dens.len(), sh::num_basis(2), common::device());
-    let p = params(0.25);
-    let batch = march::generate_samples(&grid, &rays, &p);
-    assert!(batch.num_samples() > 200, "{} samples", batch.num_samples());
-    let bt = BatchTensors::new(&batch, None, &dev);
-    let graph = render::composite(
-        floats(dens.clone(), [n, 1], &dev),
-        floats(shd.clone(), [n, 3 * nb], &dev),
-        &bt,
-        [0.2, 0.5, 0.9],
-    );
-    let host = refnpr::field::host_render::render_rays(&march::Marcher::new(&grid), &shd, &rays, &p, [0.2, 0.5, 0.9]);
-    assert_eq!(host.threshold_depth, batch.threshold_depth, "the fused pass marches the same samples");
-    for (name, host, graph) in [
-        ("rgb", host.rgb, to_vec(graph.rgb)),
-        ("depth", host.expected_depth, to_vec(graph.depth)),
-        ("opacity", host.opacity, to_vec(graph.opacity)),
-    ] {
-        assert_eq!(host.len(), graph.len(), "{name}");
-        let err = host.iter().zip(&graph).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-        println!("{name}: max |host - graph| = {err:.2e}");
-        assert!(err <= common::tol(1e-5) * graph.iter().fold(1.0f32, |m, v| m.max(v.abs())), "{name}: {err:.2e}");
-    }
-    let opacities = render::render_rays(&grid, &rays, &p, [0.2, 0.5, 0.9], 7).opacity;
-    assert!(opacities.iter().any(|&o| o > 0.9) && opacities.iter().any(|&o| o < 0.1), "hits and misses: {opacities:?}");
-}
-
-/// The photoreal fit's plain-Rust pass (`field::host_fit`: render, MSE
-/// and gradient per ray, the training step on the CPU backends) against the
-/// Burn graph and autodiff: the MSE and the gradients of density and SH
-/// (degree 2) to 1e-5 of their largest value, with step rows mapped as a
-/// training step maps them (a permutation of the grid rows), on rays that
-/// hit, graze and miss, over negative and positive densities.
-#[test]
-fn host_fit_gradient_matches_autodiff() {
-    let (grid, dens, shd, rays) = sparse_degree2_grid(3.5);
-    let (n, nb, dev) = (dens.len(), sh::num_basis(2), common::device());
-    let batch = march::generate_samples(&grid, &rays, &params(0.25));
-    let target: Vec<f32> = (0..rays.len() * 3).map(|i| ((i * 37) % 11) as f32 / 11.0).collect();
-    let bg = [0.2, 0.5, 0.9];
-    // Step rows in reverse grid order: step row k holds grid row n - 1 - k.
-    let local = |r: i32| n as i32 - 1 - r;
-    let step_dens: Vec<f32> = (0..n).map(|k| dens[n - 1 - k]).collect();
-    let step_sh: Vec<f32> = (0..n).flat_map(|k| shd[(n - 1 - k) * 3 * nb..(n - k) * 3 * nb].to_vec()).collect();
-    let corners: Vec<i32> = batch.corner_rows.iter().map(|&r| local(r)).collect();
-    let fit = |target: &[f32], buffers: &mut refnpr::field::host_fit::FitBuffers| {
-        refnpr::field::host_fit::mse_gradient(&step_dens, &step_sh, nb, &batch, &corners, target, bg, buffers)
-    };
-    // The buffers a trainer keeps between steps: a previous step's gradients
-    // left in them must not leak into the next, whether it had more step
-    // rows (here 70 more, the step rows in another order) or the same.
-    let mut buffers = Default::default();
-    let more = n + 70;
-    let (more_dens, more_sh) = (vec![0.3f32; more], vec![0.1f32; more * 3 * nb]);
-    let shifted: Vec<i32> = corners.iter().map(|&r| (r + 70) % more as i32).collect();
-    let reversed: Vec<f32> = target.iter().rev().copied().collect();
-    let earlier =
-        refnpr::field::host_fit::mse_gradient(&more_dens, &more_sh, nb, &batch, &shifted, &reversed, bg, &mut buffers);
-    buffers.keep(earlier);
-    let first = fit(&reversed, &mut buffers);
-    buffers.keep(first.clone());
-    let host = fit(&target, &mut buffers);
-    let fresh = fit(&target, &mut Default::default());
-    assert!(first.sh != host.sh, "a different target gives different gradients");
-    assert!(host.sh == fresh.sh && host.density == fresh.density, "reused buffers change the gradient");
-
-    let bt = BatchTensors::new(&batch, Some(&local), &dev);
-    let ld = floats(step_dens, [n, 1], &dev).autodiff().require_grad();
-    let ls = floats(step_sh, [n, 3 * nb], &dev).autodiff().require_grad();
-    let out = render::composite(ld.clone(), ls.clone(), &bt, bg);
-    let diff = out.rgb - floats(target, [rays.len(), 3], &dev);
-    let mse = (diff.clone() * diff).mean();
-    let grads = mse.clone().backward();
-    let mse = to_vec(mse.inner())[0];
-    println!("mse: host {} graph {mse}", host.mse);
-    assert!((host.mse as f32 - mse).abs() <= common::tol(1e-5) * mse, "mse {} vs {mse}", host.mse);
-    for (name, host, graph) in
-        [("density", host.density, to_vec(ld.grad(&grads).unwrap())), ("sh", host.sh, to_vec(ls.grad(&grads).unwrap()))]
-    {
-        let scale = graph.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-        let err = host.iter().zip(&graph).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
-        println!("{name}: max |host - graph| = {err:.2e} of {scale:.2e}");
-        assert!(scale > 0.0 && host.iter().filter(|g| **g != 0.0).count() > 10, "{name}: no gradient");
-        assert!(err <= common::tol(1e-5) * scale, "{name}: {err:.2e} of {scale:.2e}");
-    }
-}
-
 /// R³'s depth-only march (with empty-block skipping) gives exactly the
 /// renderer's equation-4 depth on a sparse grid, hits and misses alike.
 #[test]
@@ -298,7 +183,7 @@ fn depth_march_with_block_skipping_equals_the_renderer() {
     );
     let rays = cam.rays(None);
     let p = MarchParams::default();
-    let tdepth = render::render_rays(&grid, &rays, &p, [1.0; 3], 4096).threshold_depth;
+    let tdepth = view::render_rays(&grid, &rays, &RenderSettings { march: p, chunk: 4096 }, [1.0; 3]).threshold_depth;
     let fast = march::threshold_depths(&grid, &rays, &p);
     let hits = tdepth.iter().filter(|d| d.is_some()).count();
     assert!(hits > 200 && hits < rays.len(), "the sphere covers part of the view: {hits}");
@@ -312,7 +197,7 @@ fn depth_march_with_block_skipping_equals_the_renderer() {
 #[test]
 fn a_view_rendered_in_tiles_equals_its_rays_in_pixel_order() {
     for (w, h) in [(37, 21), (16, 16), (5, 40)] {
-        let order = render::tile_order(w, h, 16);
+        let order = view::tile_order(w, h, 16);
         let mut sorted = order.clone();
         sorted.sort_unstable();
         assert_eq!(sorted, (0..w * h).collect::<Vec<_>>(), "{w}x{h}: a permutation of the pixels");
@@ -322,7 +207,12 @@ fn a_view_rendered_in_tiles_equals_its_rays_in_pixel_order() {
         Intrinsics::from_fov_x(37, 21, 0.9),
         refnpr::scene::camera::look_at(Vec3::new(2.2, 1.0, 0.8), Vec3::ZERO, Vec3::Z),
     );
-    let renderer = render::ViewRenderer::new(&grid, None, &MarchParams::default(), [0.2, 0.5, 0.9], 4096);
+    let renderer = view::ViewRenderer::new(
+        &grid,
+        None,
+        &RenderSettings { march: MarchParams::default(), chunk: 4096 },
+        [0.2, 0.5, 0.9],
+    );
     let view = renderer.view(&cam);
     let rays = renderer.rays(&cam.rays(None));
     let hits = rays.threshold_depth.iter().filter(|d| d.is_some()).count();
@@ -355,31 +245,6 @@ fn long_gathers_and_scatters_are_exact() {
         );
         assert_eq!(to_vec(t).iter().sum::<f32>(), (3 * n) as f32, "scatter-add of {n} rows");
     }
-}
-
-/// The optimisers' row gathers and row adds (`util::rows_op`: parallel and
-/// in place on flex, Burn's `select` / `select_assign` elsewhere) give what
-/// Burn's own operations give, repeated rows included, on every backend.
-#[test]
-fn row_gathers_and_adds_match_select_and_select_assign() {
-    use refnpr::util::rows_op::{add_to_rows, gather_rows, read_rows_into};
-    use refnpr::util::tensor::{assign_rows, indices, select_rows};
-    let d = common::device();
-    let (n, cols) = (5000, 7);
-    let grid = floats((0..n * cols).map(|i| (i % 97) as f32 * 0.25).collect(), [n, cols], &d);
-    let rows: Vec<i32> = (0..12_000).map(|i| ((i * 7919) % n) as i32).collect();
-    let rows_t = indices(rows.clone(), &d);
-    let ours = to_vec(gather_rows(&grid, &rows, &rows_t));
-    assert_eq!(ours, to_vec(select_rows(grid.clone(), rows_t.clone())), "gather");
-    let mut kept = vec![9.0; 3];
-    read_rows_into(&grid, &rows, &rows_t, &mut kept);
-    assert_eq!(kept, ours, "gather into a kept buffer");
-    let values = floats((0..rows.len() * cols).map(|i| (i % 13) as f32 - 6.0).collect(), [rows.len(), cols], &d);
-    let expected =
-        to_vec(assign_rows(grid.clone(), rows_t.clone(), values.clone(), burn::tensor::IndexingUpdateOp::Add));
-    // A copy of the grid, so the in-place add has it to itself.
-    let own = floats(to_vec(grid), [n, cols], &d);
-    assert_eq!(to_vec(add_to_rows(own, &rows, &rows_t, values)), expected, "add");
 }
 
 /// Colour at voxels with empty corners: renormalised over the active corners

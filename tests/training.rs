@@ -59,8 +59,8 @@ fn checkpoint_round_trip_preserves_the_grid_and_renders() {
     assert_eq!(to_vec(ck.grid.density.clone()), to_vec(tr.grid.density.clone()));
     assert_eq!(to_vec(ck.grid.sh.clone()), to_vec(tr.grid.sh.clone()));
     let cam = &ds.test[0].camera;
-    let a = refnpr::field::composite::render_view(&tr.grid, cam, None, &tr.config.march, ds.background, 4096);
-    let b = refnpr::field::composite::render_view(&ck.grid, cam, None, &ck.meta.config.march, ck.meta.background, 4096);
+    let a = refnpr::field::view::render_view(&tr.grid, cam, None, &tr.config.render_settings(), ds.background);
+    let b = refnpr::field::view::render_view(&ck.grid, cam, None, &ck.meta.render, ck.meta.background);
     assert_eq!(a.image.rgb, b.image.rgb);
     // Corrupt and foreign files are refused with the path in the message.
     let bad = t.path().join("bad.bin");
@@ -103,7 +103,9 @@ fn a_checkpoint_streamed_in_blocks_is_bincodes_encoding_of_its_arrays() {
         background: [1.0; 3],
         near_far: None,
         data_dir: t.path().join("scene"),
-        config: TrainConfig::default(),
+        render: TrainConfig::default().render_settings(),
+        data: TrainConfig::default().data,
+        run_config: serde_json::to_value(TrainConfig::default()).unwrap(),
         train_seconds: 1.5,
     };
     let path = t.path().join("run").join(checkpoint::CHECKPOINT_FILE);
@@ -126,7 +128,8 @@ fn a_checkpoint_streamed_in_blocks_is_bincodes_encoding_of_its_arrays() {
     assert_eq!(ck.meta.step, 7);
     // Without the optimiser state: the same field, the state passed over.
     let ck = checkpoint::load_with(&path, &dev, false).unwrap();
-    assert_eq!((ck.grid.coords, to_vec(ck.grid.sh)), (whole.coords, whole.sh));
+    let (ck_coords, ck_sh) = (ck.grid.coords, to_vec(ck.grid.sh));
+    assert_eq!((&ck_coords, &ck_sh), (&whole.coords, &whole.sh));
     assert_eq!((ck.opt_density.dims(), ck.opt_sh.dims()), ([0, 1], [0, cols]));
     // Cut short inside the optimiser state: corrupt, either way.
     std::fs::write(&path, &written[..written.len() - 5]).unwrap();
@@ -134,6 +137,24 @@ fn a_checkpoint_streamed_in_blocks_is_bincodes_encoding_of_its_arrays() {
         let e = format!("{:#}", checkpoint::load_with(&path, &dev, state).err().unwrap());
         assert!(e.contains("is corrupt"), "{e}");
     }
+
+    // A file of the earlier layout (the whole training config under
+    // `config`, no settings of the field's own) loads with the same settings.
+    let mut config = TrainConfig::default();
+    (config.march.step, config.render_chunk, config.data.downscale) = (0.37, 1234, 2);
+    let mut old = serde_json::to_value(&meta).unwrap();
+    let fields = old.as_object_mut().unwrap();
+    for key in ["render", "data", "run_config"] {
+        fields.remove(key);
+    }
+    fields.insert("config".into(), serde_json::to_value(&config).unwrap());
+    let earlier = Whole { meta_json: old.to_string(), coords: ck_coords, sh: ck_sh, ..whole };
+    std::fs::write(&path, [&b"REFNPRG1"[..], &bincode::serialize(&earlier).unwrap()].concat()).unwrap();
+    let ck = checkpoint::load(&path, &dev).unwrap();
+    assert_eq!(ck.meta.render, config.render_settings());
+    assert_eq!(ck.meta.data, config.data);
+    assert_eq!(serde_json::from_value::<TrainConfig>(ck.meta.run_config).unwrap(), config);
+    assert_eq!(to_vec(ck.grid.sh), earlier.sh);
 }
 
 #[test]

@@ -6,11 +6,11 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, ensure};
 use clap::parser::ValueSource;
 use clap::{ArgMatches, CommandFactory, FromArgMatches, Parser, Subcommand};
-use refnpr::eval::photoreal::evaluate;
-use refnpr::eval::render_path::{self, PathKind};
-use refnpr::eval::stylization::{self, EvalJob, RobustnessViews};
+use refnpr::eval::stylization::{EvalJob, RobustnessViews};
 use refnpr::field::checkpoint::{self, Checkpoint};
+use refnpr::field::render_path::{self, PathKind};
 use refnpr::photo::config::TrainConfig;
+use refnpr::photo::evaluate::evaluate;
 use refnpr::photo::run::run_training;
 use refnpr::reference::case::{ReferenceCase, ViewSpec};
 use refnpr::reference::r3::RegisterParams;
@@ -385,85 +385,16 @@ fn run() -> Result<()> {
         Command::BenchVgg { backends, sizes, warmup, repeats, no_onnxruntime, forward, json } => {
             run_bench_vgg(backends, &sizes, warmup, repeats, no_onnxruntime, forward, json)
         }
-        Command::BenchStylize { inputs, out, config, method, refit_epochs, image_epochs, backend, json } => {
-            let PhotoAndCase { photo, reference: case, data } = inputs;
-            let job = StylizeJob {
-                photo,
-                case,
-                out,
-                config: stylize_config(config.as_deref())?,
-                method,
-                backend: backend_or_env(backend, &progress)?,
-                style: None,
-                data,
-                registration: None,
-                render_test: false,
-                resume: false,
-            };
-            run_bench_stylize(job, refit_epochs, image_epochs, json.as_deref(), &progress)
-        }
+        Command::BenchStylize { .. } => run_bench_stylize_command(cli.command, &progress),
         Command::Reference { ckpt, view, out, data } => run_reference(&ckpt, &view, &out, data),
         Command::Register { inputs, out, params, overlays } => run_register(inputs, &out, &params, overlays, &progress),
         Command::Stylize { .. } => {
             let stylize = matches.subcommand_matches("stylize").expect("the stylize subcommand was parsed");
             run_stylize_command(cli.command, stylize, &progress)
         }
-        Command::Eval {
-            run,
-            reference,
-            gt,
-            robustness,
-            robustness_epochs,
-            robustness_views,
-            resume,
-            out,
-            data,
-            backend,
-        } => {
-            let backend = backend_or_env(backend, &progress)?;
-            let json = match reference {
-                Some(case) => {
-                    let job = EvalJob {
-                        run,
-                        case,
-                        gt,
-                        robustness,
-                        robustness_views,
-                        backend,
-                        data,
-                        robustness_epochs,
-                        resume,
-                    };
-                    serde_json::to_value(stylization::evaluate_stylization(&job, &progress)?)?
-                }
-                None => {
-                    ensure!(robustness == 0, "--robustness needs --reference (the stylized run's case)");
-                    photoreal_eval(&run, gt.or(data), backend)?
-                }
-            };
-            if let Some(path) = out {
-                files::write_json(&path, &json)?;
-            }
-            println!("{}", serde_json::to_string_pretty(&json)?);
-            Ok(())
-        }
-        Command::Paint { input, out, seed } => {
-            let img =
-                ::image::open(&input).with_context(|| format!("cannot read image {}", input.display()))?.to_rgba32f();
-            let (w, h) = (img.width(), img.height());
-            let rgb = data::composite_over(&img, [1.0; 3]);
-            image::save_png(&out, w, h, &paint::painterly(&rgb, w as usize, h as usize, seed))?;
-            println!("wrote {}", out.display());
-            Ok(())
-        }
-        Command::Info { json } => {
-            let info = SystemInfo::gather();
-            match json {
-                true => println!("{}", serde_json::to_string_pretty(&info)?),
-                false => println!("{info}"),
-            }
-            Ok(())
-        }
+        Command::Eval { .. } => run_eval(cli.command, &progress),
+        Command::Paint { input, out, seed } => run_paint(&input, &out, seed),
+        Command::Info { json } => run_info(json),
         Command::Fuzz { target, seconds, cases, case_seconds, seed, memory_mb, shared_data } => {
             let limits = fuzz::Limits { max_cases: cases, max_seconds: seconds, case_seconds, seed };
             run_fuzz(&target, &limits, memory_mb, &shared_data)
@@ -477,14 +408,105 @@ fn run() -> Result<()> {
             run_train(&data, &out, config.as_deref(), backend_or_env(backend, &progress)?, resume, steps, &progress)
         }
         Command::Render { ckpt, path, out, frames, data, backend } => {
-            let device = backend_or_env(backend, &progress)?.device();
-            let (ck, dataset) = checkpoint::load_run(&ckpt, data.as_deref(), &device)?;
-            let cams = render_path::path_cameras(&dataset, path, frames)?;
-            render_path::render_frames(&ck, &cams, &out, &progress)?;
-            println!("rendered {} frames to {}", cams.len(), out.display());
-            Ok(())
+            run_render(&ckpt, path, &out, frames, data.as_deref(), backend, &progress)
         }
     }
+}
+
+/// `refnpr bench-stylize`.
+fn run_bench_stylize_command(command: Command, progress: &Console) -> Result<()> {
+    let Command::BenchStylize { inputs, out, config, method, refit_epochs, image_epochs, backend, json } = command
+    else {
+        unreachable!("called for bench-stylize")
+    };
+    let PhotoAndCase { photo, reference: case, data } = inputs;
+    let job = StylizeJob {
+        photo,
+        case,
+        out,
+        config: stylize_config(config.as_deref())?,
+        method,
+        backend: backend_or_env(backend, progress)?,
+        style: None,
+        data,
+        registration: None,
+        render_test: false,
+        resume: false,
+    };
+    run_bench_stylize(job, refit_epochs, image_epochs, json.as_deref(), progress)
+}
+
+/// `refnpr eval`: the stylization metrics (with `--reference`), or a photoreal run's test PSNR.
+fn run_eval(command: Command, progress: &Console) -> Result<()> {
+    let Command::Eval {
+        run,
+        reference,
+        gt,
+        robustness,
+        robustness_epochs,
+        robustness_views,
+        resume,
+        out,
+        data,
+        backend,
+    } = command
+    else {
+        unreachable!("called for eval")
+    };
+    let backend = backend_or_env(backend, progress)?;
+    let json = match reference {
+        Some(case) => {
+            let job = EvalJob { run, case, gt, robustness, robustness_views, backend, data, robustness_epochs, resume };
+            serde_json::to_value(refnpr::tools::robustness::evaluate(&job, progress)?)?
+        }
+        None => {
+            ensure!(robustness == 0, "--robustness needs --reference (the stylized run's case)");
+            photoreal_eval(&run, gt.or(data), backend)?
+        }
+    };
+    if let Some(path) = out {
+        files::write_json(&path, &json)?;
+    }
+    println!("{}", serde_json::to_string_pretty(&json)?);
+    Ok(())
+}
+
+/// `refnpr paint`: the painterly repaint filter on an image.
+fn run_paint(input: &Path, out: &Path, seed: u64) -> Result<()> {
+    let img = ::image::open(input).with_context(|| format!("cannot read image {}", input.display()))?.to_rgba32f();
+    let (w, h) = (img.width(), img.height());
+    let rgb = data::composite_over(&img, [1.0; 3]);
+    image::save_png(out, w, h, &paint::painterly(&rgb, w as usize, h as usize, seed))?;
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
+/// `refnpr info`: what this build runs on.
+fn run_info(json: bool) -> Result<()> {
+    let info = SystemInfo::gather();
+    match json {
+        true => println!("{}", serde_json::to_string_pretty(&info)?),
+        false => println!("{info}"),
+    }
+    Ok(())
+}
+
+/// `refnpr render`: the frames of a camera path from a checkpoint.
+fn run_render(
+    ckpt: &Path,
+    path: PathKind,
+    out: &Path,
+    frames: usize,
+    data: Option<&Path>,
+    backend: Option<BackendKind>,
+    progress: &Console,
+) -> Result<()> {
+    let device = backend_or_env(backend, progress)?.device();
+    let (ck, dataset) = checkpoint::load_run(ckpt, data, &device)?;
+    let cams = render_path::path_cameras(&dataset, path, frames)?;
+    render_path::render_frames(&ck, &cams, out, progress)?;
+    println!("rendered {} frames to {}", cams.len(), out.display());
+    Ok(())
 }
 
 /// The backend asked for (or `REFNPR_BACKEND`'s), brought up: wgpu names
@@ -752,7 +774,7 @@ fn given_flags<T: serde::Serialize>(parsed: &T, matches: &ArgMatches) -> Result<
 /// against its dataset's (or `truth`'s).
 fn photoreal_eval(run: &Path, truth: Option<PathBuf>, backend: BackendKind) -> Result<serde_json::Value> {
     let (ck, dataset) = checkpoint::load_run(run, truth.as_deref(), &backend.device())?;
-    let r = evaluate(&ck.grid, &dataset, &dataset.test, &ck.meta.config, None)?;
+    let r = evaluate(&ck.grid, &dataset, &dataset.test, &ck.meta.render, None)?;
     Ok(serde_json::json!({"psnr": r.psnr, "ssim": r.ssim, "views": r.per_view_psnr.len(), "data": dataset.root}))
 }
 

@@ -1,9 +1,7 @@
-//! Measuring and showing results: image metrics (`metrics`: PSNR, SSIM),
-//! how well a field reproduces photos (`photoreal`), the stylization
-//! metrics (`stylization`: Ref-LPIPS, ground-truth PSNR, warp stability,
-//! robustness) and camera-path renders (`render_path`).
+//! The stylization metrics (`stylization`: Ref-LPIPS, ground-truth PSNR,
+//! warp stability, speckle), computed from a stylized run and its reference
+//! case. The image metrics every stage uses are `util::metrics`; how well a
+//! field reproduces photos is `photo::evaluate`; the robustness study (an
+//! experiment that restylizes) is `tools::robustness`.
 
-pub mod metrics;
-pub mod photoreal;
-pub mod render_path;
 pub mod stylization;

@@ -20,9 +20,7 @@
 //!   some channel (`metrics::speckle`); with a ground truth also on the test
 //!   views (`speckle_test`) and on the ground truth itself (`gt_speckle`,
 //!   same pixels), which says how much of it is real detail;
-//! - `robustness_psnr`: the stylized field's own renders at N path views used
-//!   as new references, stylized again with the run's method; PSNR between
-//!   the two fields' renders along the path, averaged.
+//! - `robustness_psnr`: filled by the robustness study, `tools::robustness`.
 
 use std::path::{Path, PathBuf};
 
@@ -31,20 +29,15 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::eval::metrics;
 use crate::field::checkpoint::{self, Checkpoint};
-use crate::field::composite::ViewRenderer;
+use crate::field::view::ViewRenderer;
 use crate::reference::case::{self, ReferenceCase};
 use crate::scene::camera::{Camera, from_ndc};
 use crate::scene::data::Dataset;
-use crate::stylize::config::StylizeConfig;
-use crate::stylize::resume;
-use crate::stylize::run::run_stylize;
-use crate::stylize::{Method, StylizeJob};
 use crate::util::backend::BackendKind;
-use crate::util::files;
 use crate::util::image::Image;
-use crate::util::progress::{Event, Phase, Progress};
+use crate::util::metrics;
+use crate::util::progress::Progress;
 use crate::util::tensor::scalar;
 use crate::vgg::{FeatureMaps, Vgg16, VggLayer};
 
@@ -269,8 +262,24 @@ pub fn tolerance(ck: &Checkpoint) -> Tolerance {
     }
 }
 
-/// `refnpr eval --run STYLE_RUN --reference CASE`.
+/// A stylized run as evaluated: its field, dataset, reference case and
+/// path frames, and the metrics (the robustness study, which restylizes,
+/// is `tools::robustness`: it fills the report's robustness fields).
+pub struct EvaluatedRun {
+    pub ck: Checkpoint,
+    pub dataset: Dataset,
+    pub case: ReferenceCase,
+    pub frames: Vec<SurfaceRender>,
+    pub report: StylizationEval,
+}
+
+/// `refnpr eval --run STYLE_RUN --reference CASE` without the robustness study.
 pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<StylizationEval> {
+    Ok(evaluate_run(job, progress)?.report)
+}
+
+/// The stylization metrics of `job.run` (`robustness_psnr` left empty).
+pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedRun> {
     let device = job.backend.open(progress)?;
     let (ck, dataset) = checkpoint::load_run(&job.run, job.data.as_deref(), &device)?;
     let case = ReferenceCase::load(&job.case)?;
@@ -291,25 +300,11 @@ pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<St
         Some(gt) => Some(ground_truth_psnrs(&ck, &dataset, &case, gt)?),
         None => None,
     };
-    let robustness_frames = match job.robustness_views {
-        _ if job.robustness == 0 => Vec::new(),
-        RobustnessViews::Spread => (0..job.robustness).map(|k| k * frames.len() / job.robustness).collect(),
-        RobustnessViews::Near => {
-            let reference = case.cameras(&dataset)?[0];
-            let path: Vec<Camera> = frames.iter().map(|f| f.camera).collect();
-            nearest_cameras(&path, &reference, job.robustness)
-        }
-    };
-    let robustness_psnr = if robustness_frames.is_empty() {
-        None
-    } else {
-        Some(robustness(job, &ck, &frames, &robustness_frames, case.path_frames, progress)?)
-    };
     let started = std::time::Instant::now();
     let stability = stability(&frames, tolerance(&ck));
     let speckle = speckle_fraction(frames.iter().map(|f| speckle_of(f, &f.image.rgb)).fold((0, 0), add_counts));
     progress.info(format!("stability and speckle in {:.1} s", started.elapsed().as_secs_f64()));
-    Ok(StylizationEval {
+    let report = StylizationEval {
         run: job.run.clone(),
         reference: job.case.clone(),
         ref_lpips,
@@ -322,10 +317,11 @@ pub fn evaluate_stylization(job: &EvalJob, progress: &dyn Progress) -> Result<St
         speckle,
         speckle_test: truth.map(|t| t.speckle),
         gt_speckle: truth.map(|t| t.gt_speckle),
-        robustness_psnr,
-        robustness_frames,
+        robustness_psnr: None,
+        robustness_frames: Vec::new(),
         path_frames: path.len(),
-    })
+    };
+    Ok(EvaluatedRun { ck, dataset, case, frames, report })
 }
 
 /// Ref-LPIPS: the mean perceptual distance between each style reference and
@@ -385,7 +381,7 @@ fn speckle_fraction((speckled, counted): (usize, usize)) -> f32 {
 
 fn ground_truth_psnrs(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, gt_dir: &Path) -> Result<TruthPsnrs> {
     let tol = tolerance(ck);
-    let gt = crate::scene::data::load(gt_dir, &ck.meta.config.data)
+    let gt = crate::scene::data::load(gt_dir, &ck.meta.data)
         .with_context(|| format!("ground truth {}", gt_dir.display()))?;
     ensure!(
         gt.test.len() == dataset.test.len(),
@@ -443,88 +439,4 @@ fn stability(frames: &[SurfaceRender], tol: Tolerance) -> Vec<Stability> {
             Stability { gap, rmse: ((sum / (3 * n).max(1) as f64) as f32).sqrt(), pixels: n }
         })
         .collect()
-}
-
-/// Whether `out` holds a finished stylization (a checkpoint, no resume
-/// file left) made with `method` and `config`.
-fn finished_restylization(out: &Path, method: Method, config: &StylizeConfig) -> bool {
-    let finished = out.join(checkpoint::CHECKPOINT_FILE).exists() && !resume::path(out).exists();
-    let report: Option<serde_json::Value> = files::read_json(&out.join("stylize.json")).ok();
-    let same = report.is_some_and(|r| {
-        serde_json::from_value::<Method>(r["method"].clone()).is_ok_and(|m| m == method)
-            && serde_json::from_value::<StylizeConfig>(r["config"].clone()).is_ok_and(|c| &c == config)
-    });
-    finished && same
-}
-
-/// Restylizes from the run's own renders at path frames `chosen` and
-/// compares the path renders of each result with the run's.
-fn robustness(
-    job: &EvalJob,
-    ck: &Checkpoint,
-    frames: &[SurfaceRender],
-    chosen: &[usize],
-    path_frames: usize,
-    progress: &dyn Progress,
-) -> Result<f32> {
-    let report_path = job.run.join("stylize.json");
-    let report: serde_json::Value = files::read_json(&report_path)
-        .with_context(|| format!("robustness needs the stylization's {}", report_path.display()))?;
-    let photo = PathBuf::from(report["photo"].as_str().context("stylize.json names no photo run")?);
-    let mut config: StylizeConfig =
-        serde_json::from_value(report["config"].clone()).context("stylize.json's config")?;
-    // The paper restylizes with the method under test: an ARF run is
-    // restylized by ARF with its own render as the style image.
-    let method: Method = serde_json::from_value(report["method"].clone()).context("stylize.json's method")?;
-    if let Some(e) = job.robustness_epochs {
-        config.schedule.image_epochs = e;
-    }
-    let work = job.run.join("robustness");
-    let mut psnrs = Vec::new();
-    for (k, &frame) in chosen.iter().enumerate() {
-        let case_dir = work.join(format!("case_{frame}"));
-        frames[frame].image.save_png(&case_dir.join("style.png"))?;
-        files::write_text(
-            &case_dir.join(case::CASE_TOML),
-            &format!(
-                "# the stylized field's own render at path frame {frame} (refnpr eval --robustness)\n\
-                 path_frames = {path_frames}\n\n[[reference]]\nstyle = \"style.png\"\nview = \"path:{frame}\"\n"
-            ),
-        )?;
-        let out = work.join(format!("stylized_{frame}"));
-        progress.event(Event::Step {
-            phase: Phase::Robustness,
-            done: k,
-            total: chosen.len(),
-            message: format!("restylizing from path frame {frame}"),
-        });
-        let restyle = StylizeJob {
-            resume: job.resume,
-            photo: photo.clone(),
-            case: case_dir,
-            out: out.clone(),
-            config: config.clone(),
-            method,
-            backend: job.backend,
-            style: None,
-            data: job.data.clone(),
-            registration: None,
-            render_test: false,
-        };
-        match job.resume && finished_restylization(&out, method, &config) {
-            true => progress.info(format!("keeping the finished restylization {}", out.display())),
-            false => drop(run_stylize(&restyle, progress)?),
-        }
-        let again = checkpoint::load_with(&out, &ck.grid.device(), false)?;
-        // One PSNR over all the path frames' pixels, one render at a time.
-        let (mut sum, mut n) = (0.0f64, 0usize);
-        let renderer = again.renderer();
-        for f in frames {
-            let r = renderer.view(&f.camera);
-            sum += metrics::squared_error(&r.image.rgb, &f.image.rgb);
-            n += r.image.rgb.len();
-        }
-        psnrs.push(metrics::psnr_from_mse((sum / n as f64) as f32));
-    }
-    Ok(psnrs.iter().sum::<f32>() / psnrs.len() as f32)
 }

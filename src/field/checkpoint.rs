@@ -1,15 +1,17 @@
 //! Checkpoints: everything needed to render (grid, SH degree, bounds, NDC,
-//! dataset kind, config) plus the optimiser state for resuming, in one file
-//! written atomically (temporary file, then rename).
+//! dataset kind, render settings) plus the optimiser state and the writing
+//! run's config for resuming, in one file written atomically (temporary
+//! file, then rename).
 
-use crate::field::composite::{ViewRender, ViewRenderer};
 use crate::field::grid::{GridGeometry, RadianceGrid};
-use crate::photo::config::TrainConfig;
+use crate::field::view::{RenderSettings, ViewRender, ViewRenderer};
 use crate::scene::camera::{Camera, NdcParams};
-use crate::scene::data::DatasetKind;
+use crate::scene::data::{DatasetKind, LoadOptions};
+use crate::util::input::InputError;
 use crate::util::tensor::floats;
 use crate::util::{bin_fields, files, rows_op};
 use anyhow::{Context, Result, bail};
+
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
 use std::io::{self, BufRead, Seek, Write};
@@ -31,7 +33,14 @@ pub struct CheckpointMeta {
     pub near_far: Option<(f32, f32)>,
     /// The dataset folder it was trained on.
     pub data_dir: PathBuf,
-    pub config: TrainConfig,
+    /// How the field is rendered (march settings, render chunk).
+    pub render: RenderSettings,
+    /// How `data_dir` was read.
+    pub data: LoadOptions,
+    /// The config of the run that wrote the file, as its stage stores it
+    /// (stage 1's `TrainConfig`, which resuming a fit reads back); nothing
+    /// that renders the field reads it.
+    pub run_config: serde_json::Value,
     /// Seconds of training so far (summed over resumed runs).
     pub train_seconds: f64,
 }
@@ -75,8 +84,7 @@ impl Checkpoint {
     /// A renderer of the checkpoint's field with its own march settings,
     /// NDC warp and background (many views: build it once).
     pub fn renderer(&self) -> ViewRenderer<'_> {
-        let cfg = &self.meta.config;
-        ViewRenderer::new(&self.grid, self.meta.ndc.as_ref(), &cfg.march, self.meta.background, cfg.render_chunk)
+        ViewRenderer::new(&self.grid, self.meta.ndc.as_ref(), &self.meta.render, self.meta.background)
     }
 
     /// Renders `camera`'s view (one view; many: [`renderer`](Self::renderer)).
@@ -149,18 +157,20 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
 pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<Checkpoint> {
     let path = resolve(path);
     if !path.exists() {
-        bail!("no checkpoint at {} (train one with `refnpr train`)", path.display());
+        let message = format!("no checkpoint at {} (train one with `refnpr train`)", path.display());
+        return Err(InputError::Missing { path, message }.into());
     }
     let (file, len) = files::open_tagged(&path, MAGIC, "a refnpr checkpoint")?;
     let fields = bin_fields::FieldReader::new(file, len);
-    let p = read_payload(fields, optimiser_state).with_context(|| format!("{} is corrupt", path.display()))?;
-    let meta: CheckpointMeta =
-        serde_json::from_str(&p.meta_json).with_context(|| format!("{}: corrupt metadata", path.display()))?;
+    let malformed = |message: String| InputError::Malformed { path: path.clone(), message };
+    let p =
+        read_payload(fields, optimiser_state).with_context(|| malformed(format!("{} is corrupt", path.display())))?;
+    let meta = parse_meta(&p.meta_json).with_context(|| malformed(format!("{}: corrupt metadata", path.display())))?;
     let n = p.coords.len();
     let cols = 3 * crate::scene::sh::num_basis(meta.sh_degree);
     let npts = meta.geometry.num_points();
     if p.density.len() != n || p.sh.len() != n * cols || p.coords.iter().any(|&c| c as usize >= npts) {
-        bail!("{}: grid arrays have inconsistent sizes", path.display());
+        return Err(malformed(format!("{}: grid arrays have inconsistent sizes", path.display())).into());
     }
     let grid = RadianceGrid::from_rows(meta.geometry, meta.sh_degree, p.coords, p.density, p.sh, device);
     let (opt_density, opt_sh) = if !optimiser_state {
@@ -180,6 +190,25 @@ pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<
         )
     };
     Ok(Checkpoint { source: path, meta, grid, opt_density, opt_sh })
+}
+
+/// The metadata JSON. Files written before the field stored its own
+/// settings hold the whole training config under `config` instead of
+/// `render`, `data` and `run_config`: they are read by taking the march
+/// settings, the render chunk and the load options out of it, and keeping
+/// it whole as `run_config` (the same values the older code read).
+fn parse_meta(json: &str) -> Result<CheckpointMeta> {
+    let mut value: serde_json::Value = serde_json::from_str(json)?;
+    if let Some(meta) = value.as_object_mut()
+        && !meta.contains_key("render")
+        && let Some(config) = meta.remove("config")
+    {
+        let render = serde_json::json!({ "march": config["march"], "chunk": config["render_chunk"] });
+        meta.insert("render".into(), render);
+        meta.insert("data".into(), config["data"].clone());
+        meta.insert("run_config".into(), config);
+    }
+    Ok(serde_json::from_value(value)?)
 }
 
 /// The file's fields, read straight into their vectors (`bin_fields`);
@@ -212,7 +241,7 @@ pub fn load_run(
 ) -> Result<(Checkpoint, crate::scene::data::Dataset)> {
     let ck = load_with(path, device, false)?;
     let dir = data.map(Path::to_path_buf).unwrap_or_else(|| ck.meta.data_dir.clone());
-    let dataset = crate::scene::data::load(&dir, &ck.meta.config.data)
+    let dataset = crate::scene::data::load(&dir, &ck.meta.data)
         .with_context(|| format!("loading the run's dataset {} (pass --data to use another)", dir.display()))?;
     Ok((ck, dataset))
 }

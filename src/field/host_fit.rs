@@ -375,3 +375,84 @@ mod tests {
         }
     }
 }
+
+/// Checked against the Burn graph and autodiff, on every backend the test
+/// command runs (`cargo test --lib graph_oracle`).
+#[cfg(test)]
+#[allow(clippy::print_stdout, clippy::print_stderr)] // the measured errors, shown with --nocapture
+mod graph_oracle {
+    use crate::field::composite::{BatchTensors, composite};
+    use crate::field::march;
+    use crate::scene::sh;
+    use crate::test_support::{device, params, sparse_degree2_grid, tol};
+    use crate::util::tensor::{floats, to_vec};
+
+    /// The photoreal fit's plain-Rust pass (`field::host_fit`: render, MSE
+    /// and gradient per ray, the training step on the CPU backends) against the
+    /// Burn graph and autodiff: the MSE and the gradients of density and SH
+    /// (degree 2) to 1e-5 of their largest value, with step rows mapped as a
+    /// training step maps them (a permutation of the grid rows), on rays that
+    /// hit, graze and miss, over negative and positive densities.
+    #[test]
+    fn host_fit_gradient_matches_autodiff() {
+        let (grid, dens, shd, rays) = sparse_degree2_grid(3.5);
+        let (n, nb, dev) = (dens.len(), sh::num_basis(2), device());
+        let batch = march::generate_samples(&grid, &rays, &params(0.25));
+        let target: Vec<f32> = (0..rays.len() * 3).map(|i| ((i * 37) % 11) as f32 / 11.0).collect();
+        let bg = [0.2, 0.5, 0.9];
+        // Step rows in reverse grid order: step row k holds grid row n - 1 - k.
+        let local = |r: i32| n as i32 - 1 - r;
+        let step_dens: Vec<f32> = (0..n).map(|k| dens[n - 1 - k]).collect();
+        let step_sh: Vec<f32> = (0..n).flat_map(|k| shd[(n - 1 - k) * 3 * nb..(n - k) * 3 * nb].to_vec()).collect();
+        let corners: Vec<i32> = batch.corner_rows.iter().map(|&r| local(r)).collect();
+        let fit = |target: &[f32], buffers: &mut crate::field::host_fit::FitBuffers| {
+            crate::field::host_fit::mse_gradient(&step_dens, &step_sh, nb, &batch, &corners, target, bg, buffers)
+        };
+        // The buffers a trainer keeps between steps: a previous step's gradients
+        // left in them must not leak into the next, whether it had more step
+        // rows (here 70 more, the step rows in another order) or the same.
+        let mut buffers = Default::default();
+        let more = n + 70;
+        let (more_dens, more_sh) = (vec![0.3f32; more], vec![0.1f32; more * 3 * nb]);
+        let shifted: Vec<i32> = corners.iter().map(|&r| (r + 70) % more as i32).collect();
+        let reversed: Vec<f32> = target.iter().rev().copied().collect();
+        let earlier = crate::field::host_fit::mse_gradient(
+            &more_dens,
+            &more_sh,
+            nb,
+            &batch,
+            &shifted,
+            &reversed,
+            bg,
+            &mut buffers,
+        );
+        buffers.keep(earlier);
+        let first = fit(&reversed, &mut buffers);
+        buffers.keep(first.clone());
+        let host = fit(&target, &mut buffers);
+        let fresh = fit(&target, &mut Default::default());
+        assert!(first.sh != host.sh, "a different target gives different gradients");
+        assert!(host.sh == fresh.sh && host.density == fresh.density, "reused buffers change the gradient");
+
+        let bt = BatchTensors::new(&batch, Some(&local), &dev);
+        let ld = floats(step_dens, [n, 1], &dev).autodiff().require_grad();
+        let ls = floats(step_sh, [n, 3 * nb], &dev).autodiff().require_grad();
+        let out = composite(ld.clone(), ls.clone(), &bt, bg);
+        let diff = out.rgb - floats(target, [rays.len(), 3], &dev);
+        let mse = (diff.clone() * diff).mean();
+        let grads = mse.clone().backward();
+        let mse = to_vec(mse.inner())[0];
+        println!("mse: host {} graph {mse}", host.mse);
+        assert!((host.mse as f32 - mse).abs() <= tol(1e-5) * mse, "mse {} vs {mse}", host.mse);
+        for (name, host, graph) in [
+            ("density", host.density, to_vec(ld.grad(&grads).unwrap())),
+            ("sh", host.sh, to_vec(ls.grad(&grads).unwrap())),
+        ] {
+            let scale = graph.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            let err = host.iter().zip(&graph).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            println!("{name}: max |host - graph| = {err:.2e} of {scale:.2e}");
+            assert!(scale > 0.0 && host.iter().filter(|g| **g != 0.0).count() > 10, "{name}: no gradient");
+            assert!(err <= tol(1e-5) * scale, "{name}: {err:.2e} of {scale:.2e}");
+        }
+    }
+}

@@ -8,11 +8,13 @@ pub mod checkpoint;
 pub mod composite;
 pub mod frozen;
 pub mod grid;
-pub mod host_colour;
-pub mod host_fit;
-pub mod host_render;
+pub(crate) mod host_colour;
+pub(crate) mod host_fit;
+pub(crate) mod host_render;
 pub mod march;
 pub mod optim;
+pub mod render_path;
+pub mod view;
 
 /// What renders and differentiates the batches of rays: the photoreal
 /// fit's step, the stylization's ray losses (L_ref, the refit's photo

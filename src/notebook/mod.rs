@@ -13,9 +13,9 @@ pub mod display;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
-use crate::eval::render_path::{self, PathKind};
 use crate::eval::stylization::{self, EvalJob, RobustnessViews, StylizationEval};
 use crate::field::checkpoint::{self, Checkpoint};
+use crate::field::render_path::{self, PathKind};
 use crate::photo::config::TrainConfig;
 use crate::photo::run::{TrainMetrics, run_training};
 use crate::reference::case::{ReferenceCase, ViewSpec};
@@ -169,7 +169,7 @@ impl Scene {
         let background = self.dataset.background;
         let rgb =
             rgba.chunks(4).flat_map(|p| (0..3).map(move |c| p[c] * p[3] + background[c] * (1.0 - p[3]))).collect();
-        Ok(Image::of_camera(camera, rgb))
+        Ok(camera.image_of(rgb))
     }
 
     /// The procedural scene's ground-truth stylized twin (`dir/stylized`).
@@ -211,7 +211,7 @@ impl Scene {
             let v = views.get(i).ok_or_else(|| {
                 anyhow::anyhow!("{split:?} view {i} is out of range: the scene has {} of them", views.len())
             })?;
-            items.push((format!("{split:?} {i} ({})", v.name), Image::of_camera(&v.camera, v.rgb.clone())));
+            items.push((format!("{split:?} {i} ({})", v.name), v.camera.image_of(v.rgb.clone())));
         }
         Ok(Gallery::new(items))
     }
@@ -323,9 +323,9 @@ impl Photo {
                 anyhow::anyhow!("test view {i} is out of range: the scene has {}", self.dataset.test.len())
             })?;
             let render = self.render(&v.camera);
-            let psnr = crate::eval::metrics::psnr(&render.rgb, &v.rgb);
+            let psnr = crate::util::metrics::psnr(&render.rgb, &v.rgb);
             renders.push((format!("render test {i} ({psnr:.1} dB)"), render));
-            photos.push((format!("photo test {i}"), Image::of_camera(&v.camera, v.rgb.clone())));
+            photos.push((format!("photo test {i}"), v.camera.image_of(v.rgb.clone())));
         }
         Ok(Gallery::new(renders.into_iter().chain(photos).collect()).with_columns(indices.len()))
     }

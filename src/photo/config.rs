@@ -3,6 +3,7 @@
 
 use crate::field::RayKernel;
 use crate::field::march::MarchParams;
+use crate::field::view::RenderSettings;
 use crate::scene::data::{DatasetKind, LoadOptions};
 use anyhow::{Context, Result, bail};
 
@@ -128,6 +129,11 @@ impl Default for TrainConfig {
 }
 
 impl TrainConfig {
+    /// How the fitted field is rendered (stored in its checkpoints).
+    pub fn render_settings(&self) -> RenderSettings {
+        RenderSettings { march: self.march, chunk: self.render_chunk }
+    }
+
     /// The built-in defaults for a dataset kind (the same values as `configs/<kind>.toml`).
     pub fn for_kind(kind: DatasetKind) -> Self {
         let mut c = Self::default();

@@ -8,18 +8,18 @@ use std::time::Instant;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 
-use crate::eval::metrics;
-use crate::eval::photoreal::evaluate;
 use crate::field::checkpoint;
 use crate::photo::config::TrainConfig;
+use crate::photo::evaluate::evaluate;
 use crate::photo::trainer::Trainer;
 use crate::scene::data::Dataset;
 use crate::util::backend::BackendKind;
 use crate::util::lock::OutputLock;
 use crate::util::memory::peak_rss_mb;
+use crate::util::metrics;
 use crate::util::profile::{self, PartTime};
 use crate::util::progress::{Event, Phase, Progress};
-use crate::util::transfer::{self, PhaseTransfers, Transfers};
+use crate::util::transfer::{self, PhaseLog, PhaseTransfers, Transfers};
 use crate::util::{diverged, files};
 
 /// What `refnpr train` writes to `RUN/metrics.json`.
@@ -76,23 +76,28 @@ pub fn run_training(
     let mut trainer = start(dataset, config, resume_from, backend, progress)?;
     files::write_toml(&out.join("config.toml"), &trainer.config)?;
     let started = Instant::now();
-    let (mut transfers, loss_curve) = fit(&mut trainer, dataset, out, progress)?;
+    let (fit_transfers, loss_curve) = fit(&mut trainer, dataset, out, progress)?;
     progress.event(Event::PhaseDone { phase: Phase::Fit, seconds: started.elapsed().as_secs_f64() });
     progress.info(format!("evaluating {} test views, writing the checkpoint meanwhile", dataset.test.len()));
     // The final checkpoint and the test renders only read the field: the
     // write, which mostly waits on the disk (a fern checkpoint is 1.3 GB),
     // runs beside the renders.
+    let mut phases = PhaseLog::default();
     let write_checkpoint = trainer.checkpoint_writer(dataset);
-    let (saved, m) = std::thread::scope(|s| {
+    let (saved, report) = std::thread::scope(|s| {
         let save = s.spawn(|| write_checkpoint(out));
         let test = Some(out.join("test"));
-        let m = transfer::measure(|| evaluate(&trainer.grid, dataset, &dataset.test, &trainer.config, test.as_deref()));
-        (save.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)), m)
+        let settings = trainer.config.render_settings();
+        let report = phases.run("evaluate", dataset.test.len(), || {
+            evaluate(&trainer.grid, dataset, &dataset.test, &settings, test.as_deref())
+        });
+        (save.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)), report)
     });
     saved?;
-    let report = m.value?;
-    progress.event(Event::PhaseDone { phase: Phase::Evaluate, seconds: m.seconds });
-    transfers.insert("evaluate".into(), PhaseTransfers::new(m.moved, dataset.test.len()));
+    let report = report?;
+    progress.event(Event::PhaseDone { phase: Phase::Evaluate, seconds: phases.seconds["evaluate"] });
+    let mut transfers = fit_transfers;
+    transfers.append(&mut phases.transfers);
     for (phase, t) in &transfers {
         progress.event(Event::Detail(t.describe(phase)));
     }

@@ -75,6 +75,9 @@ pub struct Trainer {
     /// Wall time per part of a step (march, rows, gradient, update),
     /// summed over the steps since it was last cleared.
     pub profile: StepProfile,
+    /// Whether the steps run on the fused plain-Rust pass (`field::host_fit`)
+    /// or the Burn graph: `ray_kernel`, resolved once for the grid's device.
+    host_kernel: bool,
 }
 
 /// The host step's working copies, kept from one step to the next: on
@@ -198,8 +201,14 @@ impl Trainer {
     /// Resumes from a checkpoint.
     pub fn resume(dataset: &Dataset, ckpt_path: &Path, backend_device: &Device) -> Result<Self> {
         let ck = checkpoint::load(ckpt_path, backend_device)?;
+        let config: TrainConfig = serde_json::from_value(ck.meta.run_config.clone()).map_err(|e| {
+            anyhow::anyhow!(
+                "{} was not written by `refnpr train` (its config: {e}): it cannot resume a fit",
+                ck.source.display()
+            )
+        })?;
         let state = RmsState { density: ck.opt_density, sh: ck.opt_sh };
-        Ok(Self::assemble(dataset, ck.meta.config.clone(), ck.grid, state, ck.meta.step, ck.meta.train_seconds))
+        Ok(Self::assemble(dataset, config, ck.grid, state, ck.meta.step, ck.meta.train_seconds))
     }
 
     fn assemble(
@@ -211,7 +220,9 @@ impl Trainer {
         secs: f64,
     ) -> Self {
         let (rays, colours) = dataset.pixel_rays(&dataset.train);
+        let host_kernel = config.ray_kernel.is_host(&grid.device());
         Self {
+            host_kernel,
             grid,
             state,
             config,
@@ -278,7 +289,7 @@ impl Trainer {
             let local = step_rows(&self.grid, &batch.corner_rows, &mut self.subset, cfg.optim.tv_fraction, &mut rng);
             (local, indices(self.subset.rows().to_vec(), &plain))
         });
-        let mse_value = match cfg.ray_kernel.is_host(&plain) {
+        let mse_value = match self.host_kernel {
             true => self.host_step(&batch, &local, &rows_t, &target, &profile),
             false => self.graph_step(&batch, &local, &rows_t, target, &profile),
         };
@@ -453,7 +464,9 @@ impl Trainer {
             background: dataset.background,
             near_far: dataset.near_far,
             data_dir: dataset.root.clone(),
-            config: self.config.clone(),
+            render: self.config.render_settings(),
+            data: self.config.data,
+            run_config: serde_json::to_value(&self.config).expect("a config is plain data"),
             train_seconds: self.train_seconds,
         }
     }

@@ -26,11 +26,13 @@ use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
 use anyhow::{Context, Result, bail, ensure};
+
 use glam::Mat4;
 use serde::Deserialize;
 
 use crate::scene::camera::{Camera, Intrinsics};
 use crate::scene::data::Dataset;
+use crate::util::input::InputError;
 
 pub const CASE_TOML: &str = "reference.toml";
 pub const CASE_JSON: &str = "data_config.json";
@@ -179,19 +181,29 @@ struct CaseJson {
 impl ReferenceCase {
     /// Reads `dir/reference.toml`, else `dir/data_config.json`.
     pub fn load(dir: &Path) -> Result<Self> {
-        ensure!(dir.is_dir(), "reference case {} is not a folder", dir.display());
+        if !dir.is_dir() {
+            let message = format!("reference case {} is not a folder", dir.display());
+            return Err(InputError::Missing { path: dir.into(), message }.into());
+        }
         let toml_path = dir.join(CASE_TOML);
         let json_path = dir.join(CASE_JSON);
         let case = if toml_path.exists() {
             let text =
                 std::fs::read_to_string(&toml_path).with_context(|| format!("cannot read {}", toml_path.display()))?;
-            Self::from_toml(dir, &text).with_context(|| format!("in {}", toml_path.display()))?
+            Self::from_toml(dir, &text).with_context(|| InputError::Malformed {
+                path: toml_path.clone(),
+                message: format!("in {}", toml_path.display()),
+            })?
         } else if json_path.exists() {
             let text =
                 std::fs::read_to_string(&json_path).with_context(|| format!("cannot read {}", json_path.display()))?;
-            Self::from_json(dir, &text).with_context(|| format!("in {}", json_path.display()))?
+            Self::from_json(dir, &text).with_context(|| InputError::Malformed {
+                path: json_path.clone(),
+                message: format!("in {}", json_path.display()),
+            })?
         } else {
-            bail!("reference case {} has neither {CASE_TOML} nor {CASE_JSON}", dir.display());
+            let message = format!("reference case {} has neither {CASE_TOML} nor {CASE_JSON}", dir.display());
+            return Err(InputError::Missing { path: dir.into(), message }.into());
         };
         for r in &case.references {
             ensure!(r.style.exists(), "style image {} does not exist", r.style.display());

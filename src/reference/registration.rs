@@ -29,7 +29,7 @@ pub fn field_surface(ck: &Checkpoint, camera: &Camera) -> Surface {
 
 fn surface_with(marcher: &Marcher, ck: &Checkpoint, camera: &Camera) -> Surface {
     let rays = camera.rays(ck.meta.ndc.as_ref());
-    let depth = marcher.depths(&rays, &ck.meta.config.march);
+    let depth = marcher.depths(&rays, &ck.meta.render.march);
     Surface::from_depth(&rays, &depth, camera.intrinsics.width as usize, camera.intrinsics.height as usize)
 }
 

@@ -6,6 +6,8 @@
 use glam::{Mat3, Mat4, Vec3, Vec4};
 use serde::{Deserialize, Serialize};
 
+use crate::util::image::Image;
+
 /// Pinhole intrinsics in pixels.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Intrinsics {
@@ -64,6 +66,11 @@ pub struct NdcParams {
 }
 
 impl Camera {
+    /// An image the size of this camera's view.
+    pub fn image_of(&self, rgb: Vec<f32>) -> Image {
+        Image::new(self.intrinsics.width as usize, self.intrinsics.height as usize, rgb)
+    }
+
     pub fn new(intrinsics: Intrinsics, c2w: Mat4) -> Self {
         Self { intrinsics, c2w }
     }

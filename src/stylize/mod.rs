@@ -23,17 +23,22 @@
 //! Modules: `config` (the TOML settings), `losses`, `tcm` (template
 //! correspondence and colour targets), `colour_transfer` (ARF's
 //! preprocessing), `styles` (reading style images), `field` (the style
-//! field, its optimiser and chunked gradients), `stylizer` (the phases and
-//! the image step), `run` (`refnpr stylize` from files to files).
+//! field, its optimiser and chunked gradients), `samples` (the rays the
+//! losses draw from and their frozen sample lists), `step` (one image step,
+//! one refit step), `guides` (content renders, TCM matches, colour targets),
+//! `run` (`refnpr stylize` from files to files: the loops, resume points
+//! and phase costs).
 
 pub mod colour_transfer;
 pub mod config;
 pub mod field;
+pub(crate) mod guides;
 pub mod losses;
 pub mod resume;
 pub mod run;
+pub(crate) mod samples;
+pub(crate) mod step;
 pub mod styles;
-pub mod stylizer;
 pub mod tcm;
 
 use std::collections::BTreeMap;

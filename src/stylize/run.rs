@@ -1,7 +1,9 @@
 //! `refnpr stylize`, from files to files: check the inputs and the memory,
-//! register (or read `registration.bin`), read the style images, refit,
-//! build the guides, run the image epochs, save the stylized checkpoint,
-//! its reference renders, `stylize.json` and the test views.
+//! register (or read `registration.bin`), read the style images, then the
+//! loops - the refit, the guides, the image epochs and the smooth update,
+//! each step a `StyleStep` call - with their resume points and phase
+//! costs; save the stylized checkpoint, its reference renders,
+//! `stylize.json` and the test views.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -9,167 +11,112 @@ use std::time::Instant;
 
 use anyhow::{Result, bail};
 use burn::tensor::Tensor;
+use rand::seq::SliceRandom;
 
-use crate::eval::render_path::render_frames;
 use crate::field::checkpoint::{self, Checkpoint};
 use crate::field::march::Marcher;
+use crate::field::render_path::render_frames;
 use crate::reference::case::ReferenceCase;
 use crate::reference::registration::{PhotoRun, RegistrationFile, lift_references, register_case};
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
-use crate::stylize::resume::{self, ResumeState};
-use crate::stylize::styles::{arf_colour_transfer, read_styles, style_colour_stats};
-use crate::stylize::stylizer::Stylizer;
+use crate::stylize::config::StylizeConfig;
+use crate::stylize::guides;
+use crate::stylize::resume::{self, JobKey, ResumeState};
+use crate::stylize::step::{Guidance, StyleStep};
+use crate::stylize::styles::{arf_colour_transfer, is_background, read_styles, style_colour_stats};
 use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
-use crate::stylize::{Method, StepKind, StylizeJob, StylizeReport};
+use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob, StylizeReport};
+use crate::util::diverged;
 use crate::util::files;
 use crate::util::image::Image;
 use crate::util::lock::OutputLock;
-use crate::util::memory::{MemoryNow, available_memory_bytes, peak_rss_mb};
-use crate::util::profile;
+use crate::util::memory::{available_memory_bytes, peak_rss_mb};
+use crate::util::metrics::psnr_from_mse;
+use crate::util::profile::{self, PartTime};
 use crate::util::progress::{Event, Phase, Progress, WarningLog};
-use crate::util::transfer::{self, PhaseTransfers};
+use crate::util::rng::epoch_rng;
+use crate::util::tensor::to_vec;
+use crate::util::transfer::{self, PhaseLog, PhaseTransfers, Transfers};
 use crate::vgg::{self, VggLayer};
+
+/// What a stylization starts from: the photoreal run, its dataset and the reference case.
+struct Inputs {
+    ck: Checkpoint,
+    dataset: Dataset,
+    case: ReferenceCase,
+    /// The training views' size `[width, height]`.
+    image_size: [usize; 2],
+}
+
+impl Inputs {
+    /// Reads and checks them (`preflight`) before any work.
+    fn load(job: &StylizeJob, progress: &dyn Progress) -> Result<Self> {
+        job.config.validate()?;
+        let (ck, dataset) = checkpoint::load_run(&job.photo, job.data.as_deref(), &job.backend.open(progress)?)?;
+        let case = ReferenceCase::load(&job.case)?;
+        if let Some(m) = case.scene_mismatch(&dataset) {
+            bail!(
+                "{m}: the reference case does not belong to the photoreal run {} (fix `scene_name` in the case if it does)",
+                job.photo.display()
+            );
+        }
+        let image_size = preflight(job, &ck, &dataset)?;
+        Ok(Inputs { ck, dataset, case, image_size })
+    }
+}
 
 /// `refnpr stylize`.
 pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeReport> {
     let started = Instant::now();
-    let cfg = &job.config;
-    cfg.validate()?;
-    let (ck, dataset) = checkpoint::load_run(&job.photo, job.data.as_deref(), &job.backend.open(progress)?)?;
-    let case = ReferenceCase::load(&job.case)?;
-    if let Some(m) = case.scene_mismatch(&dataset) {
-        bail!(
-            "{m}: the reference case does not belong to the photoreal run {} (fix `scene_name` in the case if it does)",
-            job.photo.display()
-        );
-    }
-    let image_size = preflight(job, &ck, &dataset)?;
+    let Inputs { ck, dataset, case, image_size } = Inputs::load(job, progress)?;
     let _lock = OutputLock::acquire(&job.out)?;
-    let resumed = match job.resume {
-        true => ResumeState::load(job)?,
-        false => None,
-    };
-    let mut seconds = BTreeMap::new();
-    let mut moved = BTreeMap::new();
-    let mut memory = BTreeMap::new();
+    let resumed = if job.resume { ResumeState::load(job)? } else { None };
+    let mut phases = PhaseLog::default();
     let mut warnings = WarningLog::new(progress);
-
-    let m = transfer::measure(|| registration(job, &ck, &dataset, &case, &mut warnings));
-    let registration = m.value?;
-    seconds.insert("registration".to_string(), m.seconds);
-    memory.insert("registration".to_string(), MemoryNow::read());
-    moved.insert("registration".to_string(), PhaseTransfers::new(m.moved, 0));
+    let registration = phases.run("registration", 0, || registration(job, &ck, &dataset, &case, &mut warnings))?;
     let registered_fraction = registration.fraction_overall();
     if job.method == Method::RefNpr && registration.views.iter().all(|v| v.registration.pixels.is_empty()) {
         warnings.push(
             "R³ registered no training pixel: L_ref uses the reference view only, the rest comes from TCM".into(),
         );
     }
-
     let (styles, style_colours, colour_transfer) =
         style_side(job, &case, &dataset, &registration, ck.meta.background, &mut warnings)?;
     let photo_meta = ck.meta.clone();
-    let mut st = Stylizer::new(job, &dataset, ck.grid, &photo_meta, registration, colour_transfer);
-    if let (true, Some(tf)) = (job.method == Method::Arf && cfg.arf.transfer_grid, colour_transfer) {
-        st.field.apply_colour_transfer(&tf);
-    }
-    match &resumed {
-        None => {
-            let m = transfer::measure(|| st.refit(progress));
-            m.value?;
-            seconds.insert("refit".to_string(), m.seconds);
-            let refit_steps = st.curve.iter().filter(|p| p.phase == StepKind::Refit).count();
-            moved.insert("refit".to_string(), PhaseTransfers::new(m.moved, refit_steps));
-            st.finish_refit()?;
-            memory.insert("refit".to_string(), MemoryNow::read());
-        }
-        Some(state) => {
-            progress.info(format!(
-                "resuming {} after image step {} (the refit is done)",
-                resume::path(&job.out).display(),
-                state.image_steps
-            ));
-            st.start_from_refit(state)?;
-        }
-    }
-
-    let colour = job.method == Method::RefNpr && cfg.ablation.use_colour_loss && case.color_pre;
-    let m = transfer::measure(|| st.guidance(&styles, keeps_content(job), colour, progress));
-    let (guidance, colour_matched) = m.value?;
-    let sample_cache = st.sample_cache_report();
-    progress.event(Event::Detail(format!(
-        "sample cache: {} of {} views{}, {:.0} MB of {} ({} samples in {} cells)",
-        sample_cache.views_cached,
-        sample_cache.views,
-        if sample_cache.registered_cached { " and the registered pixels" } else { "" },
-        sample_cache.mb,
-        sample_cache.budget_mb,
-        sample_cache.samples,
-        sample_cache.cells
-    )));
-    seconds.insert("content".to_string(), m.seconds);
-    memory.insert("content".to_string(), MemoryNow::read());
-    moved.insert("content".to_string(), PhaseTransfers::new(m.moved, dataset.train.len()));
-    if colour {
-        // What L_color pulls each view towards, for inspection (small: one entry per 16x16 pixels).
-        let [w, h] = image_size;
-        let records: Vec<_> =
-            guidance.guides.iter().enumerate().filter_map(|(v, g)| g.colour().map(|c| c.to_record(v, w, h))).collect();
-        files::write_json(&job.out.join("colour_targets.json"), &records)?;
-    }
-
-    let start = resumed.as_ref().map_or(0, |s| s.image_steps);
+    let mut st =
+        Stylization::new(job, StyleStep::new(job, &dataset, ck.grid, &photo_meta, registration), colour_transfer);
+    let start = st.refit_or_resume(resumed.as_ref(), &mut phases, progress)?;
+    let colour = job.method == Method::RefNpr && job.config.ablation.use_colour_loss && case.color_pre;
+    let (guidance, colour_matched) = st.content_phase(&styles, colour, image_size, &mut phases, progress)?;
+    let sample_cache = st.step.samples.report(job.config.sample_cache_mb);
     if let Some(state) = resumed {
         st.restore(state);
     }
-    let epochs = st.image_epochs(&styles, guidance, start, progress)?;
-    seconds.insert("image_epochs".to_string(), epochs.image_seconds);
-    seconds.insert("smooth_update".to_string(), epochs.smooth_seconds);
-    memory.insert("image_epochs".to_string(), MemoryNow::read());
-    moved.insert("image_epochs".to_string(), epochs.image_steps);
-    moved.insert("smooth_update".to_string(), epochs.smooth_steps);
-    moved.insert("smooth_update_guides".to_string(), epochs.smooth_guides);
-    progress
-        .event(Event::PhaseDone { phase: Phase::ImageEpochs, seconds: epochs.image_seconds + epochs.smooth_seconds });
-    for (phase, t) in &moved {
-        progress.event(Event::Detail(t.describe(phase)));
-    }
-    for (phase, parts) in &st.step_profiles {
-        progress.event(Event::Detail(format!("{phase} steps: {}", profile::describe(parts))));
-    }
-
-    let post_colour_transfer = match style_colours.filter(|_| cfg.arf.post_transfer) {
-        Some(style) => {
-            let tf = st.post_colour_transfer(&style, cfg.arf.transfer_pixels)?;
-            progress.info(format!("ARF colour transfer after stylizing: {:?} + {:?}", tf.matrix, tf.offset));
-            Some(tf)
-        }
-        None => None,
-    };
-
-    save_outputs(&st, &photo_meta, started, &job.out)?;
+    st.image_epochs(&styles, guidance, start, &mut phases, progress)?;
+    let post_colour_transfer = st.post_colour_transfer(style_colours, progress)?;
+    save_outputs(&st, &photo_meta, &job.config, started, &job.out)?;
     let report = StylizeReport {
         method: job.method,
         backend: job.backend.to_string(),
         photo: job.photo.clone(),
         case: job.case.clone(),
-        config: cfg.clone(),
+        config: job.config.clone(),
         registration: job.registration.clone(),
         views: dataset.train.len(),
         image_size,
-        registered_pixels: st.registered.len(),
+        registered_pixels: st.step.samples.registered.len(),
         registered_fraction,
         colour_matched_fraction: colour_matched,
         colour_transfer: st.colour_transfer,
         post_colour_transfer,
         total_seconds: started.elapsed().as_secs_f64(),
-        seconds,
-        transfers: moved,
+        seconds: phases.seconds,
+        transfers: phases.transfers,
         step_profiles: std::mem::take(&mut st.step_profiles),
         peak_rss_mb: peak_rss_mb(),
-        memory,
+        memory: phases.memory,
         sample_cache,
         final_losses: st.curve.iter().rev().find(|p| p.phase != StepKind::Refit).cloned(),
         curve: std::mem::take(&mut st.curve),
@@ -177,12 +124,382 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     };
     files::write_json(&job.out.join("stylize.json"), &report)?;
     ResumeState::remove(&job.out);
+    render_test_views(job, &dataset, progress)?;
+    Ok(report)
+}
+
+/// The stylized test views (`job.render_test`), from the saved checkpoint.
+fn render_test_views(job: &StylizeJob, dataset: &Dataset, progress: &dyn Progress) -> Result<()> {
     if job.render_test && !dataset.test.is_empty() {
         let style_ck = checkpoint::load_with(&job.out, &job.backend.device(), false)?;
         let cams: Vec<Camera> = dataset.test.iter().map(|v| v.camera).collect();
         render_frames(&style_ck, &cams, &job.out.join("test"), progress)?;
     }
-    Ok(report)
+    Ok(())
+}
+
+/// A stylization in progress: its step, the loss curve so far, and what
+/// its resume points hold.
+struct Stylization<'a> {
+    job: &'a StylizeJob,
+    step: StyleStep<'a>,
+    /// ARF: the photos are recoloured with this before the refit.
+    colour_transfer: Option<ColourTransfer>,
+    curve: Vec<CurvePoint>,
+    /// The field after the refit and when the smooth update began: the
+    /// guides were built from them, so a resumed run rebuilds them from these.
+    refit_sh: Vec<f32>,
+    smooth_sh: Option<Vec<f32>>,
+    /// The image step of the last `resume.bin` written by this run.
+    saved_at: Option<usize>,
+    /// Each finished phase's step profile (`refit`, `image_epochs`, `smooth_update`).
+    step_profiles: BTreeMap<String, Vec<PartTime>>,
+}
+
+impl<'a> Stylization<'a> {
+    fn new(job: &'a StylizeJob, mut step: StyleStep<'a>, colour_transfer: Option<ColourTransfer>) -> Self {
+        if let (true, Some(tf)) = (job.method == Method::Arf && job.config.arf.transfer_grid, colour_transfer) {
+            step.field.apply_colour_transfer(&tf);
+        }
+        Stylization {
+            job,
+            step,
+            colour_transfer,
+            curve: Vec::new(),
+            refit_sh: Vec::new(),
+            smooth_sh: None,
+            saved_at: None,
+            step_profiles: BTreeMap::new(),
+        }
+    }
+
+    /// The refit and the first resume point; or, resuming, the field as the
+    /// refit left it. Returns the image steps already done.
+    fn refit_or_resume(
+        &mut self,
+        resumed: Option<&ResumeState>,
+        phases: &mut PhaseLog,
+        progress: &dyn Progress,
+    ) -> Result<usize> {
+        match resumed {
+            None => {
+                let m = transfer::measure(|| self.refit(progress));
+                m.value?;
+                self.finish_refit()?;
+                let steps = self.curve.iter().filter(|p| p.phase == StepKind::Refit).count();
+                phases.record("refit", m.seconds, PhaseTransfers::new(m.moved, steps));
+                Ok(0)
+            }
+            Some(state) => {
+                progress.info(format!(
+                    "resuming {} after image step {} (the refit is done)",
+                    resume::path(&self.job.out).display(),
+                    state.image_steps
+                ));
+                self.start_from_refit(state)?;
+                Ok(state.image_steps)
+            }
+        }
+    }
+
+    /// Ray epochs: refit the degree-0 colour to the photos (MSE, SH TV);
+    /// ARF: to the recoloured photos.
+    fn refit(&mut self, progress: &dyn Progress) -> Result<()> {
+        let (job, dataset, background) = (self.job, self.step.dataset(), self.step.background());
+        let mut colours: Vec<[f32; 3]> =
+            dataset.train.iter().flat_map(|v| crate::util::image::pixels(&v.rgb)).collect();
+        if let Some(tf) = &self.colour_transfer {
+            // Background pixels stay: rays that miss the scene render the
+            // fixed background colour, and a recoloured target there could
+            // never be fitted (lego: 70 % of the pixels).
+            colours.iter_mut().filter(|c| !is_background(c, background)).for_each(|c| *c = tf.apply(*c));
+        }
+        // The refit's rays are training pixels: with the views' lists cached
+        // first, a step copies its rays' lists instead of marching them.
+        self.step.cache_samples();
+        let s = &job.config.schedule;
+        let steps = (s.ray_epochs as f64 * colours.len() as f64 / s.ray_batch as f64).ceil() as usize;
+        progress.event(Event::Start { phase: Phase::Refit, done: 0, total: steps });
+        if !job.config.optim.keep_state {
+            self.step.field.reset_optimiser();
+        }
+        for step in 0..steps {
+            let started = Instant::now();
+            let point = self.step.refit_step(step, &colours);
+            let mse = point.total;
+            diverged::check_loss(mse, Phase::Refit, step + 1, || self.what_is_kept())?;
+            let message = format!("mse {mse:.5} psnr {:.2}", psnr_from_mse(mse));
+            progress.event(Event::Step { phase: Phase::Refit, done: step + 1, total: steps, message });
+            self.curve.push(CurvePoint { seconds: started.elapsed().as_secs_f32(), ..point });
+        }
+        self.finish_profile("refit");
+        Ok(())
+    }
+
+    /// The content phase: the sample cache, then the first guides; writes
+    /// `colour_targets.json` when L_color is on. Returns the guidance and
+    /// the fraction of relu5 positions the colour loss supervises.
+    fn content_phase(
+        &mut self,
+        styles: &[Image],
+        colour: bool,
+        [w, h]: [usize; 2],
+        phases: &mut PhaseLog,
+        progress: &dyn Progress,
+    ) -> Result<(Guidance, f32)> {
+        let views = self.step.dataset().train.len();
+        let keep = keeps_content(self.job);
+        let (guidance, matched) =
+            phases.run("content", views, || guides::guidance(&mut self.step, styles, keep, colour, progress))?;
+        let cache = self.step.samples.report(self.job.config.sample_cache_mb);
+        progress.event(Event::Detail(format!(
+            "sample cache: {} of {} views{}, {:.0} MB of {} ({} samples in {} cells)",
+            cache.views_cached,
+            cache.views,
+            if cache.registered_cached { " and the registered pixels" } else { "" },
+            cache.mb,
+            cache.budget_mb,
+            cache.samples,
+            cache.cells
+        )));
+        if colour {
+            // What L_color pulls each view towards, for inspection (small: one entry per 16x16 pixels).
+            let records: Vec<_> = guidance
+                .guides
+                .iter()
+                .enumerate()
+                .filter_map(|(v, g)| g.colour().map(|c| c.to_record(v, w, h)))
+                .collect();
+            files::write_json(&self.job.out.join("colour_targets.json"), &records)?;
+        }
+        Ok((guidance, matched))
+    }
+
+    /// The image epochs, one `image_step` per training view in a seeded
+    /// order; the last `smooth_fraction` of them (Ref-NPR) are the smooth
+    /// content update, where the stylized field becomes the content
+    /// generator. A resumed run passes the image steps already done as
+    /// `start`. Records the phases `image_epochs`, `smooth_update` and
+    /// `smooth_update_guides` (the content renders of the new guides).
+    fn image_epochs(
+        &mut self,
+        styles: &[Image],
+        mut guidance: Guidance,
+        start: usize,
+        phases: &mut PhaseLog,
+        progress: &dyn Progress,
+    ) -> Result<()> {
+        let job = self.job;
+        let s = &job.config.schedule;
+        let views = self.step.dataset().train.len();
+        let total_steps = s.image_epochs * views;
+        let smooth_start = s.image_epochs - self.smooth_epochs().min(s.image_epochs);
+        if !job.config.optim.keep_state && start == 0 {
+            self.step.field.reset_optimiser();
+        }
+        let started = Instant::now();
+        let mut smooth_started = None;
+        // Per-step traffic, the smooth update's guides (content renders) apart.
+        let (mut image_moved, mut smooth_moved, mut guides_moved) = Default::default();
+        progress.event(Event::Start { phase: Phase::ImageEpochs, done: start, total: total_steps });
+        let mut step = 0;
+        for epoch in 0..s.image_epochs {
+            let smooth = epoch >= smooth_start;
+            if smooth && smooth_started.is_none() {
+                smooth_started = Some(Instant::now());
+                self.finish_profile("image_epochs");
+                guides_moved = self.start_smooth_update(styles, &mut guidance, step < start, progress)?;
+            }
+            let mut order: Vec<usize> = (0..views).collect();
+            order.shuffle(&mut epoch_rng(job.config.seed, epoch));
+            for v in order {
+                if step < start {
+                    step += 1;
+                    continue;
+                }
+                let moved = self.one_image_step(v, step, (epoch, total_steps), &guidance, smooth, progress)?;
+                let sum: &mut Transfers = if smooth { &mut smooth_moved } else { &mut image_moved };
+                *sum = sum.plus(moved);
+                step += 1;
+                let every = s.checkpoint_every;
+                if every > 0 && step.is_multiple_of(every) && step < total_steps {
+                    self.save_resume_point(step)?;
+                }
+            }
+        }
+        let smooth_secs = smooth_started.map(|t| t.elapsed().as_secs_f64()).unwrap_or(0.0);
+        self.finish_profile(if smooth_started.is_some() { "smooth_update" } else { "image_epochs" });
+        let image_secs = started.elapsed().as_secs_f64() - smooth_secs;
+        let smooth_steps = (s.image_epochs - smooth_start) * views;
+        phases.record("image_epochs", image_secs, PhaseTransfers::new(image_moved, smooth_start * views));
+        phases.record("smooth_update", smooth_secs, PhaseTransfers::new(smooth_moved, smooth_steps));
+        phases.transfers.insert("smooth_update_guides".into(), PhaseTransfers::new(guides_moved, 0));
+        progress.event(Event::PhaseDone { phase: Phase::ImageEpochs, seconds: image_secs + smooth_secs });
+        for (phase, t) in &phases.transfers {
+            progress.event(Event::Detail(t.describe(phase)));
+        }
+        for (phase, parts) in &self.step_profiles {
+            progress.event(Event::Detail(format!("{phase} steps: {}", profile::describe(parts))));
+        }
+        Ok(())
+    }
+
+    /// Epochs of the smooth content update (Ref-NPR with it on; ARF none).
+    fn smooth_epochs(&self) -> usize {
+        let s = &self.job.config.schedule;
+        match self.job.method == Method::RefNpr && self.job.config.ablation.smooth_update {
+            true => (s.image_epochs as f32 * s.smooth_fraction).round() as usize,
+            false => 0,
+        }
+    }
+
+    /// One image step, checked, reported and added to the curve. Returns
+    /// what it moved between host and device.
+    fn one_image_step(
+        &mut self,
+        v: usize,
+        step: usize,
+        (epoch, total_steps): (usize, usize),
+        guidance: &Guidance,
+        smooth: bool,
+        progress: &dyn Progress,
+    ) -> Result<Transfers> {
+        let m = transfer::measure(|| self.step.image_step(v, step, total_steps, guidance, smooth));
+        let mut point = m.value?;
+        point.seconds = m.seconds as f32;
+        diverged::check_loss(point.total, Phase::ImageEpochs, step + 1, || self.what_is_kept())?;
+        let message = format!(
+            "epoch {}/{} {:?} | total {:.4} ref {:.4} feat {:.4} colour {:.4}",
+            epoch + 1,
+            self.job.config.schedule.image_epochs,
+            point.phase,
+            point.total,
+            point.reference,
+            point.feature,
+            point.colour
+        );
+        progress.event(Event::Step { phase: Phase::ImageEpochs, done: step + 1, total: total_steps, message });
+        self.curve.push(point);
+        Ok(m.moved)
+    }
+
+    /// The smooth update begins: new guides from the stylized field (as it
+    /// was at this point: a run `resumed_past` it rebuilds them from the
+    /// kept `smooth_sh`). Returns what building them moved.
+    fn start_smooth_update(
+        &mut self,
+        styles: &[Image],
+        guidance: &mut Guidance,
+        resumed_past: bool,
+        progress: &dyn Progress,
+    ) -> Result<Transfers> {
+        let now = match (&self.smooth_sh, resumed_past) {
+            (Some(then), true) => {
+                let then = self.step.sh_tensor(then);
+                Some(std::mem::replace(&mut self.step.field.grid.sh, then))
+            }
+            _ => None,
+        };
+        let m = transfer::measure(|| -> Result<_> {
+            let t = guides::template(&self.step, styles)?;
+            Ok((guides::guides(&self.step, Some(&t), false, false, progress)?.0, t))
+        });
+        let (guides, t) = m.value?;
+        (guidance.guides, guidance.template) = (guides, Some(t));
+        match now {
+            Some(now) => self.step.field.grid.sh = now,
+            None => self.smooth_sh = Some(to_vec(self.step.field.grid.sh.clone())),
+        }
+        Ok(m.moved)
+    }
+
+    /// Files the step profile of the phase that just ended under `phase`.
+    fn finish_profile(&mut self, phase: &str) {
+        let parts = self.step.take_profile();
+        if !parts.is_empty() {
+            self.step_profiles.insert(phase.to_string(), parts);
+        }
+    }
+
+    /// What a diverged run leaves: its checkpoint is written only at its
+    /// end; its last resume point, if any, is good.
+    fn what_is_kept(&self) -> String {
+        let out = &self.job.out;
+        match self.saved_at {
+            Some(k) => format!(
+                "the last resume point, {} (image step {k}), is kept: `--resume` continues from it",
+                resume::path(out).display()
+            ),
+            None => format!("nothing was written to {}", out.join(checkpoint::CHECKPOINT_FILE).display()),
+        }
+    }
+
+    /// The refit is over: its field is kept (the guides are built from it)
+    /// and the first resume point written.
+    fn finish_refit(&mut self) -> Result<()> {
+        self.refit_sh = to_vec(self.step.field.grid.sh.clone());
+        self.save_resume_point(0)
+    }
+
+    /// Writes `OUT/resume.bin` after `image_steps` image steps; refuses a
+    /// field that is not finite (a resume point must be good).
+    fn save_resume_point(&mut self, image_steps: usize) -> Result<()> {
+        let state = ResumeState {
+            job: JobKey::of(self.job),
+            refit_sh: self.refit_sh.clone(),
+            smooth_sh: self.smooth_sh.clone(),
+            sh: to_vec(self.step.field.grid.sh.clone()),
+            rms: to_vec(self.step.field.rms()),
+            image_steps,
+            optimiser_steps: self.step.optimiser_steps,
+            curve: self.curve.clone(),
+        };
+        if let Some(what) = diverged::first_non_finite(&[("SH colour", &state.sh), ("RMSprop state", &state.rms)]) {
+            bail!(
+                "the field's {what} holds NaN or infinite values after image step {image_steps}; {}",
+                self.what_is_kept()
+            );
+        }
+        state.save(&self.job.out)?;
+        self.saved_at = Some(image_steps);
+        Ok(())
+    }
+
+    /// A resumed run: the field as the refit left it (to rebuild the first
+    /// guides from).
+    fn start_from_refit(&mut self, state: &ResumeState) -> Result<()> {
+        let rows = self.step.field.grid.num_rows();
+        if state.refit_sh.len() != rows * 3 || state.sh.len() != rows * 3 || state.rms.len() != rows * 3 {
+            bail!("{} does not fit this photoreal run's grid", resume::path(&self.job.out).display());
+        }
+        self.refit_sh = state.refit_sh.clone();
+        self.step.field.grid.sh = self.step.sh_tensor(&state.refit_sh);
+        Ok(())
+    }
+
+    /// A resumed run, once its first guides are built: the field, optimiser
+    /// state, step count and curve as the killed run left them.
+    fn restore(&mut self, state: ResumeState) {
+        self.step.field.grid.sh = self.step.sh_tensor(&state.sh);
+        self.step.field.set_rms(self.step.sh_tensor(&state.rms));
+        self.smooth_sh = state.smooth_sh;
+        self.step.optimiser_steps = state.optimiser_steps;
+        self.curve = state.curve;
+        self.saved_at = Some(state.image_steps);
+    }
+
+    /// ARF's second colour transfer (`arf.post_transfer`), towards the style's colours.
+    fn post_colour_transfer(
+        &mut self,
+        style_colours: Option<ColourStats>,
+        progress: &dyn Progress,
+    ) -> Result<Option<ColourTransfer>> {
+        let cfg = &self.job.config;
+        let Some(style) = style_colours.filter(|_| cfg.arf.post_transfer) else { return Ok(None) };
+        let tf = self.step.post_colour_transfer(&style, cfg.arf.transfer_pixels)?;
+        progress.info(format!("ARF colour transfer after stylizing: {:?} + {:?}", tf.matrix, tf.offset));
+        Ok(Some(tf))
+    }
 }
 
 /// The style images and, for ARF with either colour transfer on, the style's
@@ -300,19 +617,25 @@ fn registration(
 
 /// The stylized checkpoint (a normal grid with SH degree 0) and the
 /// stylized renders of the reference views.
-fn save_outputs(st: &Stylizer, photo_meta: &checkpoint::CheckpointMeta, started: Instant, out: &Path) -> Result<()> {
+fn save_outputs(
+    st: &Stylization,
+    photo_meta: &checkpoint::CheckpointMeta,
+    config: &StylizeConfig,
+    started: Instant,
+    out: &Path,
+) -> Result<()> {
     let mut meta = photo_meta.clone();
     meta.sh_degree = 0;
-    meta.config.grid.sh_degree = 0;
-    meta.config.march = st.march();
+    meta.render.march = st.step.march();
+    meta.run_config = serde_json::to_value(config).expect("a config is plain data");
     meta.step = st.curve.iter().filter(|p| p.phase != StepKind::Refit).count();
     meta.train_seconds = started.elapsed().as_secs_f64();
-    let grid = &st.field.grid;
+    let grid = &st.step.field.grid;
     let (rows, device) = (grid.num_rows(), grid.device());
     let zeros = (Tensor::zeros([rows, 1], &device), Tensor::zeros([rows, 3], &device));
     checkpoint::save(&out.join(checkpoint::CHECKPOINT_FILE), &meta, grid, &zeros.0, &zeros.1)?;
-    for r in 0..st.num_references() {
-        st.render_reference(r).save_png(&out.join(format!("reference_{r}.png")))?;
+    for r in 0..st.step.num_references() {
+        st.step.render_reference(r).save_png(&out.join(format!("reference_{r}.png")))?;
     }
     Ok(())
 }

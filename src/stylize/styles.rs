@@ -71,7 +71,7 @@ fn read_reference_style(
     for w in note.into_iter().chain(style_warnings(path, &rgb)?) {
         warnings.push(w);
     }
-    Ok(Image::of_camera(camera, rgb))
+    Ok(camera.image_of(rgb))
 }
 
 /// The style images: one per reference of the case, at its view's size; for

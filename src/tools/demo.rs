@@ -8,11 +8,11 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 
-use crate::eval::photoreal::evaluate;
-use crate::eval::render_path::{self, PathKind};
 use crate::eval::stylization::{self, EvalJob, RobustnessViews, StylizationEval};
 use crate::field::checkpoint::{self, Checkpoint};
+use crate::field::render_path::{self, PathKind};
 use crate::photo::config::TrainConfig;
+use crate::photo::evaluate::evaluate;
 use crate::photo::run::{TrainMetrics, run_training};
 use crate::reference::case::CASE_TOML;
 use crate::scene::camera::Camera;
@@ -66,7 +66,7 @@ pub struct DemoReport {
 pub fn write_twin_case(scene: &Path, view: usize, out: &Path) -> Result<PathBuf> {
     let twin = data::load(&scene.join("stylized"), &Default::default())?;
     let v = twin.train.get(view).with_context(|| format!("the scene has no training view {view}"))?;
-    crate::util::image::Image::of_camera(&v.camera, v.rgb.clone()).save_png(&out.join("style.png"))?;
+    v.camera.image_of(v.rgb.clone()).save_png(&out.join("style.png"))?;
     files::write_text(
         &out.join(CASE_TOML),
         &format!(
@@ -192,7 +192,7 @@ fn evaluate_demo(
         resume: false,
     };
     let eval = stylization::evaluate_stylization(&job, progress)?;
-    let truth = data::load(&twin, &ck.meta.config.data)?;
-    let photo_gt = evaluate(&ck.grid, dataset, &truth.test, &ck.meta.config, None)?;
+    let truth = data::load(&twin, &ck.meta.data)?;
+    let photo_gt = evaluate(&ck.grid, dataset, &truth.test, &ck.meta.render, None)?;
     Ok((eval, photo_gt.psnr))
 }

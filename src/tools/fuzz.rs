@@ -345,13 +345,34 @@ pub const TARGETS: &[&str] = &[
     "nsvf_bbox",
 ];
 
+/// Seeds and a check: what a target is made of.
+type Seeded = (Vec<Vec<u8>>, Check);
+/// A real file of `../shared/data` by its relative path, when present.
+type Real<'r> = dyn Fn(&str) -> std::io::Result<Option<Vec<u8>>> + 'r;
+
 /// Builds target `name`. `scratch` is a private folder for files the
 /// parsers read; `shared_data` (`../shared/data`), when present, adds real
 /// files to the seeds.
 pub fn target(name: &str, scratch: &Path, shared_data: Option<&Path>) -> Result<Target> {
     files::create_dir(scratch)?;
     let real = |rel: &str| shared_data.map(|d| d.join(rel)).filter(|p| p.exists()).map(std::fs::read).transpose();
-    let (seeds, check): (Vec<Vec<u8>>, Check) = match name {
+    let (seeds, check) = match name {
+        "npy" | "transforms" | "poses_bounds" | "nsvf_intrinsics" | "nsvf_pose" | "nsvf_bbox" => {
+            dataset_files(name, scratch, &real)?
+        }
+        "reference_toml" | "data_config" | "train_config" | "stylize_config" => {
+            case_and_config_files(name, scratch, &real)?
+        }
+        "checkpoint" | "registration" | "image" => binary_files(name, scratch)?,
+        other => bail!("no fuzz target '{other}' (targets: {}, cli)", TARGETS.join(", ")),
+    };
+    Ok(Target { name: name.to_string(), seeds, check })
+}
+
+/// Seeds and checks of the dataset files' targets (npy, transforms.json,
+/// poses_bounds.npy, NSVF's text files).
+fn dataset_files(name: &str, scratch: &Path, real: &Real) -> Result<Seeded> {
+    let seeded: Seeded = match name {
         "npy" => {
             let mut seeds =
                 vec![npy_bytes(scratch, &[2, 3])?, npy_bytes(scratch, &[4])?, npy_bytes(scratch, &[1, 17])?];
@@ -365,6 +386,34 @@ pub fn target(name: &str, scratch: &Path, shared_data: Option<&Path>) -> Result<
             let file = scene.join("transforms_train.json");
             (seeds, Box::new(move |b| parse_file(&file, b, || data::load(&scene, &Default::default()).map(drop))))
         }
+        "poses_bounds" => {
+            let dir = tiny_llff(scratch)?;
+            let file = dir.join("poses_bounds.npy");
+            let mut seeds = vec![std::fs::read(&file)?];
+            seeds.extend(real("nerf_llff_data/fern/poses_bounds.npy")?);
+            (seeds, Box::new(move |b| parse_file(&file, b, || data::load(&dir, &Default::default()).map(drop))))
+        }
+        "nsvf_intrinsics" | "nsvf_pose" | "nsvf_bbox" => {
+            let dir = tiny_nsvf(scratch)?;
+            let file = match name {
+                "nsvf_intrinsics" => dir.join("intrinsics.txt"),
+                "nsvf_pose" => dir.join("pose").join("0_000.txt"),
+                _ => dir.join("bbox.txt"),
+            };
+            let mut seeds = vec![std::fs::read(&file)?];
+            if name == "nsvf_intrinsics" {
+                seeds.push(b"10 4 3 0\n0 0 0\n1\n".to_vec()); // the DeepVoxels form
+            }
+            (seeds, Box::new(move |b| parse_file(&file, b, || data::load(&dir, &Default::default()).map(drop))))
+        }
+        _ => unreachable!("not a dataset files target: {name}"),
+    };
+    Ok(seeded)
+}
+
+/// Seeds and checks of the reference cases' and configs' targets.
+fn case_and_config_files(name: &str, scratch: &Path, real: &Real) -> Result<Seeded> {
+    let seeded: Seeded = match name {
         "reference_toml" => {
             let (dir, dataset) = (scratch.to_path_buf(), data::load(&tiny_scene(scratch)?, &Default::default())?);
             let seeds = [
@@ -415,6 +464,14 @@ pub fn target(name: &str, scratch: &Path, shared_data: Option<&Path>) -> Result<
                 Box::new(|b| drop(StylizeConfig::from_toml_str(&String::from_utf8_lossy(b), "fuzz.toml")));
             (seeds.iter().map(|s| s.as_bytes().to_vec()).collect(), check)
         }
+        _ => unreachable!("not a case and config files target: {name}"),
+    };
+    Ok(seeded)
+}
+
+/// Seeds and checks of the checkpoint, registration and image targets.
+fn binary_files(name: &str, scratch: &Path) -> Result<Seeded> {
+    let seeded: Seeded = match name {
         "checkpoint" => {
             let file = scratch.join(checkpoint::CHECKPOINT_FILE);
             write_tiny_checkpoint(&file)?;
@@ -441,29 +498,9 @@ pub fn target(name: &str, scratch: &Path, shared_data: Option<&Path>) -> Result<
             });
             (seeds, check)
         }
-        "poses_bounds" => {
-            let dir = tiny_llff(scratch)?;
-            let file = dir.join("poses_bounds.npy");
-            let mut seeds = vec![std::fs::read(&file)?];
-            seeds.extend(real("nerf_llff_data/fern/poses_bounds.npy")?);
-            (seeds, Box::new(move |b| parse_file(&file, b, || data::load(&dir, &Default::default()).map(drop))))
-        }
-        "nsvf_intrinsics" | "nsvf_pose" | "nsvf_bbox" => {
-            let dir = tiny_nsvf(scratch)?;
-            let file = match name {
-                "nsvf_intrinsics" => dir.join("intrinsics.txt"),
-                "nsvf_pose" => dir.join("pose").join("0_000.txt"),
-                _ => dir.join("bbox.txt"),
-            };
-            let mut seeds = vec![std::fs::read(&file)?];
-            if name == "nsvf_intrinsics" {
-                seeds.push(b"10 4 3 0\n0 0 0\n1\n".to_vec()); // the DeepVoxels form
-            }
-            (seeds, Box::new(move |b| parse_file(&file, b, || data::load(&dir, &Default::default()).map(drop))))
-        }
-        other => bail!("no fuzz target '{other}' (targets: {}, cli)", TARGETS.join(", ")),
+        _ => unreachable!("not a binary files target: {name}"),
     };
-    Ok(Target { name: name.to_string(), seeds, check })
+    Ok(seeded)
 }
 
 /// Writes `bytes` to `file`, then runs the parser that reads it.
@@ -533,6 +570,7 @@ fn write_tiny_checkpoint(file: &Path) -> Result<()> {
     let sh: Vec<f32> = (0..coords.len() * 12).map(|i| i as f32 * 0.1).collect();
     let device = BackendKind::Flex.device();
     let grid = RadianceGrid::from_rows(geometry, 1, coords, density, sh, &device);
+    let config = TrainConfig::for_kind(DatasetKind::Blender);
     let meta = CheckpointMeta {
         step: 3,
         geometry,
@@ -542,7 +580,9 @@ fn write_tiny_checkpoint(file: &Path) -> Result<()> {
         background: [1.0; 3],
         near_far: None,
         data_dir: PathBuf::from("scene"),
-        config: TrainConfig::for_kind(DatasetKind::Blender),
+        render: config.render_settings(),
+        data: config.data,
+        run_config: serde_json::to_value(&config)?,
         train_seconds: 1.0,
     };
     let zeros = |cols: usize| crate::util::tensor::floats(vec![0.0; 4 * cols], [4, cols], &device);

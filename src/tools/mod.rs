@@ -1,5 +1,6 @@
 //! Around the pipeline: benchmarks (`bench`), the one-command demo on the
-//! procedural scene (`demo`), `info` (what the build runs on), `fuzz` (every parser of outside input fed mutated files), and a painterly repaint filter to try
+//! procedural scene (`demo`), `info` (what the build runs on), `fuzz` (every parser of outside input fed mutated files), the robustness study (`robustness`: restylizations from the stylized
+//! field's own renders), and a painterly repaint filter to try
 //! stylization without painting by hand (`paint`).
 
 pub mod bench;
@@ -7,3 +8,4 @@ pub mod demo;
 pub mod fuzz;
 pub mod info;
 pub mod paint;
+pub mod robustness;

@@ -11,7 +11,9 @@ use std::fs::File;
 use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, bail};
+use anyhow::{Context, Result};
+
+use crate::util::input::InputError;
 use bincode::Options;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -94,7 +96,9 @@ pub fn save<T: Serialize>(path: &Path, magic: &[u8; 8], value: &T) -> Result<()>
 /// ("a refnpr checkpoint").
 pub fn load<T: DeserializeOwned>(path: &Path, magic: &[u8; 8], what: &str) -> Result<T> {
     let (mut reader, limit) = open_tagged(path, magic, what)?;
-    options(limit).deserialize_from(&mut reader).with_context(|| format!("{} is corrupt", path.display()))
+    options(limit)
+        .deserialize_from(&mut reader)
+        .with_context(|| InputError::Malformed { path: path.into(), message: format!("{} is corrupt", path.display()) })
 }
 
 /// Opens a file written by `save` (or in its layout, `util::bin_fields`)
@@ -105,7 +109,8 @@ pub fn open_tagged(path: &Path, magic: &[u8; 8], what: &str) -> Result<(BufReade
     let mut reader = BufReader::new(file);
     let mut tag = [0u8; 8];
     if reader.read_exact(&mut tag).is_err() || &tag != magic {
-        bail!("{} is not {what}", path.display());
+        let message = format!("{} is not {what}", path.display());
+        return Err(InputError::WrongKind { path: path.into(), message }.into());
     }
     Ok((reader, size.saturating_sub(8)))
 }
@@ -153,7 +158,7 @@ mod tests {
         write_text(&path, "good").unwrap();
         let err = write_atomic(&path, |w| {
             w.write_all(b"half of a new fi").unwrap();
-            bail!("the encoder failed")
+            anyhow::bail!("the encoder failed")
         })
         .unwrap_err();
         assert!(format!("{err:#}").contains("keeps its previous content"), "{err:#}");

@@ -8,7 +8,6 @@ use image::codecs::png::PngEncoder;
 use image::{Delay, Frame, RgbImage, RgbaImage};
 use std::path::Path;
 
-use crate::scene::camera::Camera;
 use crate::util::files;
 
 /// An RGB image: interleaved, row-major, values in [0, 1].
@@ -23,11 +22,6 @@ impl Image {
     pub fn new(width: usize, height: usize, rgb: Vec<f32>) -> Self {
         assert_eq!(rgb.len(), width * height * 3, "an RGB buffer of {width}x{height}");
         Self { width, height, rgb }
-    }
-
-    /// An image the size of `camera`'s view.
-    pub fn of_camera(camera: &Camera, rgb: Vec<f32>) -> Self {
-        Self::new(camera.intrinsics.width as usize, camera.intrinsics.height as usize, rgb)
     }
 
     /// The `[1, 3, H, W]` tensor of the image (VGG16's input layout).

@@ -3,19 +3,21 @@
 //! on failure, one run per output folder, progress events, per-step random generators, memory readings, host-device traffic counts, per-part step timings, reused buffers.
 
 pub mod backend;
-pub mod bin_fields;
+pub(crate) mod bin_fields;
 pub mod config;
-pub mod diverged;
+pub(crate) mod diverged;
 pub mod files;
 pub mod image;
+pub mod input;
 pub mod lock;
 pub mod memory;
+pub mod metrics;
 pub mod npy;
-pub mod pool;
+pub(crate) mod pool;
 pub mod profile;
 pub mod progress;
-pub mod rng;
-pub mod rows_op;
+pub(crate) mod rng;
+pub(crate) mod rows_op;
 pub mod tensor;
 pub mod transfer;
 

@@ -2,6 +2,8 @@
 //! C order), enough for `poses_bounds.npy` and our depth maps.
 
 use anyhow::{Context, Result, bail};
+
+use crate::util::input::InputError;
 use std::path::Path;
 
 /// An array read from a `.npy` file, converted to f64.
@@ -12,7 +14,10 @@ pub struct NpyArray {
 
 pub fn read(path: &Path) -> Result<NpyArray> {
     let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
-    parse(&bytes).with_context(|| format!("{} is not a valid .npy file", path.display()))
+    parse(&bytes).with_context(|| InputError::Malformed {
+        path: path.into(),
+        message: format!("{} is not a valid .npy file", path.display()),
+    })
 }
 
 pub fn parse(bytes: &[u8]) -> Result<NpyArray> {

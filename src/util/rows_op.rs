@@ -526,3 +526,37 @@ mod tests {
         kernel::add(&mut [0.0; 6], 3, &[2], &[1.0; 3]);
     }
 }
+
+/// Checked against the Burn graph and autodiff, on every backend the test
+/// command runs (`cargo test --lib graph_oracle`).
+#[cfg(test)]
+#[allow(clippy::print_stdout, clippy::print_stderr)] // the measured errors, shown with --nocapture
+mod graph_oracle {
+    use crate::test_support::device;
+    use crate::util::tensor::{floats, to_vec};
+
+    /// The optimisers' row gathers and row adds (`util::rows_op`: parallel and
+    /// in place on flex, Burn's `select` / `select_assign` elsewhere) give what
+    /// Burn's own operations give, repeated rows included, on every backend.
+    #[test]
+    fn row_gathers_and_adds_match_select_and_select_assign() {
+        use crate::util::rows_op::{add_to_rows, gather_rows, read_rows_into};
+        use crate::util::tensor::{assign_rows, indices, select_rows};
+        let d = device();
+        let (n, cols) = (5000, 7);
+        let grid = floats((0..n * cols).map(|i| (i % 97) as f32 * 0.25).collect(), [n, cols], &d);
+        let rows: Vec<i32> = (0..12_000).map(|i| ((i * 7919) % n) as i32).collect();
+        let rows_t = indices(rows.clone(), &d);
+        let ours = to_vec(gather_rows(&grid, &rows, &rows_t));
+        assert_eq!(ours, to_vec(select_rows(grid.clone(), rows_t.clone())), "gather");
+        let mut kept = vec![9.0; 3];
+        read_rows_into(&grid, &rows, &rows_t, &mut kept);
+        assert_eq!(kept, ours, "gather into a kept buffer");
+        let values = floats((0..rows.len() * cols).map(|i| (i % 13) as f32 - 6.0).collect(), [rows.len(), cols], &d);
+        let expected =
+            to_vec(assign_rows(grid.clone(), rows_t.clone(), values.clone(), burn::tensor::IndexingUpdateOp::Add));
+        // A copy of the grid, so the in-place add has it to itself.
+        let own = floats(to_vec(grid), [n, cols], &d);
+        assert_eq!(to_vec(add_to_rows(own, &rows, &rows_t, values)), expected, "add");
+    }
+}

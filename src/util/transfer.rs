@@ -172,3 +172,31 @@ mod tests {
         assert_eq!(human_bytes(1_234_567), "1.2 MB");
     }
 }
+
+/// What each phase of a run cost: wall seconds, memory when it ended, and
+/// host-device traffic. Both runs (`photo::run`, `stylize::run`) measure
+/// their phases through [`PhaseLog::run`], one call a phase.
+#[derive(Default)]
+pub struct PhaseLog {
+    pub seconds: std::collections::BTreeMap<String, f64>,
+    pub memory: std::collections::BTreeMap<String, crate::util::memory::MemoryNow>,
+    pub transfers: std::collections::BTreeMap<String, PhaseTransfers>,
+}
+
+impl PhaseLog {
+    /// Runs `work` as phase `name` of `steps` steps and records its cost
+    /// (nothing when it fails: the run stops there).
+    pub fn run<T, E>(&mut self, name: &str, steps: usize, work: impl FnOnce() -> Result<T, E>) -> Result<T, E> {
+        let m = measure(work);
+        let value = m.value?;
+        self.record(name, m.seconds, PhaseTransfers::new(m.moved, steps));
+        Ok(value)
+    }
+
+    /// Records a phase measured by its own loop.
+    pub fn record(&mut self, name: &str, seconds: f64, moved: PhaseTransfers) {
+        self.seconds.insert(name.to_string(), seconds);
+        self.memory.insert(name.to_string(), crate::util::memory::MemoryNow::read());
+        self.transfers.insert(name.to_string(), moved);
+    }
+}

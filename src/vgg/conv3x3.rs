@@ -413,6 +413,9 @@ fn weight_transform(out: [&mut [f32]; 6], g: [&[f32]; 3]) {
 /// tx reads P[4tx .. 4tx+6] = R_0[tx], R_1[tx], R_2[tx], R_3[tx],
 /// R_0[tx+1], R_1[tx+1].
 #[allow(clippy::too_many_arguments)]
+// One pass of numeric kernel whose three stages share their tile buffers;
+// split, each part would take the buffers and the index arithmetic apart.
+#[allow(clippy::too_many_lines)]
 fn band(
     x: &[f32],
     dims: Dims,

@@ -340,3 +340,112 @@ fn is_3x3_same(conv: &Conv2d) -> bool {
         && conv.groups == 1
         && matches!(conv.padding, PaddingConfig2d::Explicit(1, 1, 1, 1))
 }
+
+/// Checked against the Burn graph and autodiff, on every backend the test
+/// command runs (`cargo test --lib graph_oracle`).
+#[cfg(test)]
+#[allow(clippy::print_stdout, clippy::print_stderr)] // the measured errors, shown with --nocapture
+mod graph_oracle {
+    use burn::tensor::Tensor;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    use crate::test_support::{backend, max_rel_err, tol};
+    use crate::util::tensor::{floats, to_vec};
+
+    /// The 3x3 convolution operation (`vgg::conv_op`: the Winograd kernel on
+    /// the CPU backends, Burn's `conv2d` on wgpu) against Burn's `conv2d`,
+    /// without and with the fused ReLU: the output and the gradients of the
+    /// input, the weights and the bias, to 1e-4 relative (1e-3 on wgpu), on a
+    /// batch of two images with odd sides.
+    #[test]
+    fn conv3x3_op_and_its_gradients_match_burns_conv2d() {
+        use burn::tensor::module::conv2d;
+        use burn::tensor::ops::ConvOptions;
+        let device = backend().autodiff_device();
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut values = |shape: [usize; 4]| {
+            let len = shape.iter().product();
+            floats((0..len).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect(), shape, &device)
+        };
+        let (n, c, k, h, w) = (2, 5, 7, 13, 10);
+        let x = values([n, c, h, w]);
+        let weight = values([k, c, 3, 3]);
+        let bias = values([1, 1, 1, k]).reshape([k]);
+        let upstream = values([n, k, h, w]);
+        let run = |ours: bool, relu: bool| {
+            let (x, weight, bias) =
+                (x.clone().require_grad(), weight.clone().require_grad(), bias.clone().require_grad());
+            let y = if ours {
+                crate::vgg::conv_op::conv3x3(x.clone(), weight.clone(), bias.clone(), relu)
+            } else {
+                let y =
+                    conv2d(x.clone(), weight.clone(), Some(bias.clone()), ConvOptions::new([1, 1], [1, 1], [1, 1], 1));
+                if relu { burn::tensor::activation::relu(y) } else { y }
+            };
+            // A loss whose output gradient is `upstream`, not uniform.
+            let grads = (y.clone() * upstream.clone()).sum().backward();
+            let grad_of = |t: &Tensor<4>| to_vec(t.grad(&grads).expect("gradient"));
+            [to_vec(y), grad_of(&x), grad_of(&weight), to_vec(bias.grad(&grads).expect("bias gradient"))]
+        };
+        for relu in [false, true] {
+            let (ours, burn) = (run(true, relu), run(false, relu));
+            let names = ["output", "input gradient", "weight gradient", "bias gradient"];
+            for (name, (a, b)) in names.iter().zip(ours.iter().zip(&burn)) {
+                let err = max_rel_err(a, b);
+                println!("relu {relu}, {name}: max rel err {err:.2e}");
+                assert!(b.iter().any(|v| v.abs() > 0.0), "{name}: reference is zero");
+                assert!(err <= tol(1e-4), "relu {relu}, {name}: max rel err {err:.2e}");
+            }
+        }
+    }
+
+    /// The prepared-weights path of a frozen layer (`conv3x3_relu_forward` with
+    /// a slot: `Vgg16`'s) against Burn's `conv2d` + ReLU: the output, the input
+    /// gradient and the bias gradient to 1e-4 relative (1e-3 on wgpu), on a
+    /// batch of two images with odd sides; the slot is filled once on the CPU
+    /// backends (wgpu runs Burn's convolution and leaves it empty), and a
+    /// second call through the filled slot gives the same output.
+    #[test]
+    fn prepared_conv3x3_matches_burns_conv2d() {
+        use crate::vgg::conv_op::{PreparedSlot, conv3x3_relu_forward};
+        use burn::nn::PaddingConfig2d;
+        use burn::nn::conv::Conv2dConfig;
+        let device = backend().autodiff_device();
+        device.seed(9);
+        let (n, c, k, h, w) = (2, 6, 5, 11, 9);
+        let conv = Conv2dConfig::new([c, k], [3, 3]).with_padding(PaddingConfig2d::Explicit(1, 1, 1, 1)).init(&device);
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let mut values = |shape: [usize; 4]| {
+            let len = shape.iter().product();
+            floats((0..len).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect(), shape, &device)
+        };
+        let x = values([n, c, h, w]);
+        let upstream = values([n, k, h, w]);
+        let slot = PreparedSlot::new();
+        let run = |prepared: Option<&PreparedSlot>| {
+            let x = x.clone().require_grad();
+            let y = match prepared {
+                Some(_) => conv3x3_relu_forward(&conv, x.clone(), prepared),
+                None => burn::tensor::activation::relu(conv.forward(x.clone())),
+            };
+            let grads = (y.clone() * upstream.clone()).sum().backward();
+            let bias = conv.bias.as_ref().expect("bias").val();
+            [
+                to_vec(y),
+                to_vec(x.grad(&grads).expect("input gradient")),
+                to_vec(bias.grad(&grads).expect("bias gradient")),
+            ]
+        };
+        let (ours, burn) = (run(Some(&slot)), run(None));
+        for (name, (a, b)) in ["output", "input gradient", "bias gradient"].iter().zip(ours.iter().zip(&burn)) {
+            let err = max_rel_err(a, b);
+            println!("{name}: max rel err {err:.2e}");
+            assert!(b.iter().any(|v| v.abs() > 0.0), "{name}: reference is zero");
+            assert!(err <= tol(1e-4), "{name}: max rel err {err:.2e}");
+        }
+        let host = crate::util::tensor::is_host_memory(&device);
+        assert_eq!(slot.get().is_some(), host, "the slot is filled on the CPU backends only");
+        assert_eq!(run(Some(&slot))[0], ours[0], "a second call through the filled slot");
+    }
+}

@@ -27,11 +27,11 @@ pub use crate::util::tensor::image_tensor;
 use crate::vgg::conv_op::PreparedSlot;
 use crate::vgg::model::Model;
 
-pub mod conv3x3;
-pub mod conv_op;
+pub(crate) mod conv3x3;
+pub(crate) mod conv_op;
 pub mod features;
 pub mod model;
-pub mod staged;
+pub(crate) mod staged;
 
 /// SHA-256 over the 13 convolutions' weights and biases (float32 LE, in
 /// network order, weight before bias): the value `models/make_vgg16_onnx.py`

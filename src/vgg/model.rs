@@ -1,5 +1,6 @@
 //! The burn-onnx generated VGG16 feature stack (see build.rs and models/).
-#![allow(clippy::all, unused)]
+// Generated code: no lint of ours applies (too_many_lines is a pedantic lint, outside clippy::all).
+#![allow(clippy::all, clippy::pedantic, unused)]
 include!(concat!(env!("OUT_DIR"), "/model/vgg16_features.rs"));
 
 /// The imported graph's pieces, in network order, for a forward pass that

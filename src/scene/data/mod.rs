@@ -6,7 +6,9 @@ pub mod nsvf;
 pub mod procedural;
 
 use crate::scene::camera::{Camera, Intrinsics, NdcParams, Ray, pose_is_valid};
+use crate::util::input::InputError;
 use anyhow::{Context, Result, bail};
+
 use glam::{Mat4, Vec3};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -131,7 +133,8 @@ impl Dataset {
 /// Finds the layout of a dataset folder.
 pub fn detect_kind(dir: &Path) -> Result<DatasetKind> {
     if !dir.exists() {
-        bail!("dataset folder {} does not exist", dir.display());
+        let message = format!("dataset folder {} does not exist", dir.display());
+        return Err(InputError::Missing { path: dir.into(), message }.into());
     }
     if !dir.is_dir() {
         bail!("{} is not a folder", dir.display());
@@ -144,11 +147,12 @@ pub fn detect_kind(dir: &Path) -> Result<DatasetKind> {
     } else if dir.join("pose").is_dir() && dir.join("rgb").is_dir() {
         Ok(DatasetKind::Nsvf)
     } else {
-        bail!(
+        let message = format!(
             "{} is not a dataset folder: expected transforms_train.json (Blender), \
              poses_bounds.npy (LLFF) or rgb/ + pose/ + intrinsics.txt (NSVF / Tanks&Temples)",
             dir.display()
-        )
+        );
+        Err(InputError::NotADataset { path: dir.into(), message }.into())
     }
 }
 
@@ -175,14 +179,19 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
 /// optionally downscaled by an integer factor.
 pub fn read_rgb(path: &Path, background: [f32; 3], downscale: u32) -> Result<(u32, u32, Vec<f32>)> {
     if !path.exists() {
-        bail!("image {} does not exist", path.display());
+        let message = format!("image {} does not exist", path.display());
+        return Err(InputError::Missing { path: path.into(), message }.into());
     }
-    let img = image::open(path).with_context(|| format!("cannot decode image {}", path.display()))?;
+    let img = image::open(path).with_context(|| InputError::Malformed {
+        path: path.into(),
+        message: format!("cannot decode image {}", path.display()),
+    })?;
     let mut img = img.to_rgba32f();
     if downscale > 1 {
         let (w, h) = (img.width() / downscale, img.height() / downscale);
         if w == 0 || h == 0 {
-            bail!("image {} is too small to downscale by {downscale}", path.display());
+            let message = format!("image {} is too small to downscale by {downscale}", path.display());
+            return Err(InputError::WrongSize { path: path.into(), message }.into());
         }
         img = image::imageops::resize(&img, w, h, image::imageops::FilterType::Triangle);
     }
@@ -205,7 +214,8 @@ pub fn composite_over(img: &image::Rgba32FImage, background: [f32; 3]) -> Vec<f3
 /// Checks a pose for NaN / non-invertible rotation, naming the file.
 pub fn check_pose(m: &Mat4, source: &Path, what: &str) -> Result<()> {
     if !pose_is_valid(m) {
-        bail!("{}: the pose of {what} contains NaN/inf or is not invertible", source.display());
+        let message = format!("{}: the pose of {what} contains NaN/inf or is not invertible", source.display());
+        return Err(InputError::Malformed { path: source.into(), message }.into());
     }
     Ok(())
 }
@@ -215,7 +225,7 @@ pub fn check_sizes(views: &[View], intr: &Intrinsics, source: &Path) -> Result<(
     for v in views {
         let k = &v.camera.intrinsics;
         if (k.width, k.height) != (intr.width, intr.height) {
-            bail!(
+            let message = format!(
                 "{}: images have mixed sizes ({} is {}x{}, expected {}x{})",
                 source.display(),
                 v.name,
@@ -224,6 +234,7 @@ pub fn check_sizes(views: &[View], intr: &Intrinsics, source: &Path) -> Result<(
                 intr.width,
                 intr.height
             );
+            return Err(InputError::WrongSize { path: source.into(), message }.into());
         }
     }
     Ok(())

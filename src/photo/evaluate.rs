@@ -5,11 +5,10 @@ use std::path::Path;
 use anyhow::Result;
 use serde::{Deserialize, Serialize};
 
-use crate::eval::metrics;
-use crate::field::composite::ViewRenderer;
 use crate::field::grid::RadianceGrid;
-use crate::photo::config::TrainConfig;
+use crate::field::view::{RenderSettings, ViewRenderer};
 use crate::scene::data::{Dataset, View};
+use crate::util::metrics;
 
 /// Quality of a grid on a set of views.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -24,13 +23,12 @@ pub fn evaluate(
     grid: &RadianceGrid,
     dataset: &Dataset,
     views: &[View],
-    config: &TrainConfig,
+    settings: &RenderSettings,
     out: Option<&Path>,
 ) -> Result<EvalReport> {
     let mut psnrs = Vec::new();
     let mut ssims = Vec::new();
-    let renderer =
-        ViewRenderer::new(grid, dataset.ndc.as_ref(), &config.march, dataset.background, config.render_chunk);
+    let renderer = ViewRenderer::new(grid, dataset.ndc.as_ref(), settings, dataset.background);
     for (i, v) in views.iter().enumerate() {
         let r = renderer.view(&v.camera);
         psnrs.push(metrics::psnr(&r.image.rgb, &v.rgb));

@@ -1,0 +1,112 @@
+//! What the image epochs are guided by, built from the field as it is:
+//! the content renders of every training view, their VGG16 features, the
+//! TCM template of the references and each view's matches and colour
+//! targets (Ref-NPR), or the style features (ARF).
+
+use anyhow::Result;
+
+use crate::scene::camera::Camera;
+use crate::stylize::Method;
+use crate::stylize::config::WhiteOn;
+use crate::stylize::step::{Guidance, StyleStep, ViewGuide};
+use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3, ReferencePair, StoredFeatures, Template};
+use crate::util::image::Image;
+use crate::util::progress::{Event, Phase, Progress};
+use crate::util::tensor::is_host_memory;
+use crate::vgg::VggLayer;
+
+/// Caches the sample lists, then builds the template (Ref-NPR) or the
+/// style features (ARF) and every view's guide; also the fraction of
+/// relu5 positions the colour loss supervises.
+pub(crate) fn guidance(
+    st: &mut StyleStep,
+    styles: &[Image],
+    keep_content: bool,
+    colour: bool,
+    progress: &dyn Progress,
+) -> Result<(Guidance, f32)> {
+    st.cache_samples();
+    let (template, style_bank) = match st.method() {
+        Method::RefNpr => (Some(template(st, styles)?), None),
+        Method::Arf => {
+            let style = match st.cfg().arf.half_resolution {
+                true => arf_style_at_half_resolution(&styles[0], &st.dataset().train[0].camera),
+                false => styles[0].clone(),
+            };
+            let (raw, _) = tcm::image_features(&st.vgg, &style, &st.ad, &[&RELU3], false)?;
+            (None, Some(raw.into_iter().next().expect("one block")))
+        }
+    };
+    let (guides, matched) = guides(st, template.as_ref(), keep_content, colour, progress)?;
+    Ok((Guidance { template, style_bank, guides }, matched))
+}
+
+/// Content renders, features, TCM matches and colour targets of every view.
+pub(crate) fn guides(
+    st: &StyleStep,
+    template: Option<&Template>,
+    keep_content: bool,
+    colour: bool,
+    progress: &dyn Progress,
+) -> Result<(Vec<ViewGuide>, f32)> {
+    let blocks: Vec<&[VggLayer]> = match st.method() {
+        Method::RefNpr => FEATURE_BLOCKS.to_vec(),
+        Method::Arf => vec![&RELU3],
+    };
+    let n = st.dataset().train.len();
+    progress.event(Event::Start { phase: Phase::Guides, done: 0, total: n });
+    let mut out = Vec::with_capacity(n);
+    let mut matched = 0.0;
+    let half = st.method() == Method::Arf && st.cfg().arf.half_resolution;
+    let half_content = st.cfg().half_content_features && is_host_memory(&st.device);
+    for v in 0..n {
+        let content = st.render_view(v);
+        let halved;
+        let vgg_input = if half {
+            halved = content.half();
+            &halved
+        } else {
+            &content
+        };
+        let (raw, colour_desc) = tcm::image_features(&st.vgg, vgg_input, &st.ad, &blocks, colour)?;
+        let matches = template.map(|t| t.matches(&raw, st.cfg().search_chunk)).unwrap_or_default();
+        let colour = match (template, colour_desc) {
+            (Some(t), Some(d)) => {
+                let l = &st.cfg().loss;
+                let white = (l.colour_white_on == WhiteOn::Content).then_some(l.colour_white);
+                let c = t.colour_targets(d, &content, l.colour_max_distance, white, st.cfg().search_chunk);
+                matched += c.matched_fraction / n as f32;
+                Some(c)
+            }
+            _ => None,
+        };
+        let content = if keep_content {
+            raw.into_iter().map(|features| StoredFeatures::store(features, half_content)).collect()
+        } else {
+            Vec::new()
+        };
+        out.push(ViewGuide { content, matches, colour });
+        progress.event(Event::Step { phase: Phase::Guides, done: v + 1, total: n, message: String::new() });
+    }
+    Ok((out, matched))
+}
+
+/// The TCM template of the references, their content renders from the field as it is now.
+pub(crate) fn template(st: &StyleStep, styles: &[Image]) -> Result<Template> {
+    let pairs: Vec<ReferencePair> = styles
+        .iter()
+        .enumerate()
+        .map(|(r, s)| ReferencePair { content: st.render_reference(r), style: s.clone() })
+        .collect();
+    Template::build(&st.vgg, &pairs, &st.ad)
+}
+
+/// ARF's style image at the released code's scale: resized so its long side
+/// is the views' long side, then halved (the renders VGG sees are halved too).
+fn arf_style_at_half_resolution(style: &Image, view: &Camera) -> Image {
+    let long_side = view.intrinsics.width.max(view.intrinsics.height) as f32;
+    let scale = long_side / style.width.max(style.height) as f32;
+    let (w, h) = ((style.width as f32 * scale).round() as usize, (style.height as f32 * scale).round() as usize);
+    let sized = if (w, h) == (style.width, style.height) { style.clone() } else { style.resized(w, h) };
+    sized.half()
+}
