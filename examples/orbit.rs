@@ -44,9 +44,9 @@ fn main() -> Result<(), refnpr::Error> {
         stylized.report.total_seconds
     );
 
-    let orbit = out.join("orbit");
-    let frames = stylized.render_path(24, &orbit)?;
-    println!("orbit: {} frames in {}", frames.items.len(), orbit.join("path.gif").display());
+    let (orbit, frames) = (out.join("orbit"), 24);
+    stylized.render_path(frames, &orbit)?;
+    println!("orbit: {frames} frames in {}", orbit.join("path.gif").display());
     let eval = stylized.evaluate(&reference, Some(&scene))?;
     println!(
         "against the stylized twin: {:.2} dB over all pixels, {:.2} dB where the reference does not see",

@@ -38,6 +38,9 @@ echo "== the front API's example: procedural scene to stylized orbit (flex)"
 REFNPR_BACKEND=flex cargo run --example orbit -- target/example-orbit
 test -s target/example-orbit/orbit/path.gif
 
+echo "== docs: the library's rustdoc, warnings (broken links included) denied"
+RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --lib --quiet
+
 STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input --skip robustness --skip a_killed_stylization)
 
 echo "== ndarray: renderer, grid, VGG16, stylization units, metrics"

@@ -34,6 +34,8 @@
 
 // Library code reports through `util::progress`; only the `Console` sink prints.
 #![warn(clippy::print_stdout, clippy::print_stderr)]
+// The docs' links must resolve (`cargo doc` in the test command, warnings denied).
+#![deny(rustdoc::broken_intra_doc_links)]
 
 pub mod eval;
 pub mod field;

@@ -4,8 +4,6 @@
 
 use burn::tensor::Device;
 use glam::Vec3;
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
 
 use crate::field::grid::{GridGeometry, RadianceGrid};
 use crate::field::march::MarchParams;
@@ -59,23 +57,6 @@ pub fn sparse_degree2_grid(max_density: f32) -> (RadianceGrid, Vec<f32>, Vec<f32
         })
         .collect();
     (grid, dens, shd, rays)
-}
-
-/// A dense 12^3 grid of SH degree 0 with a random blob of density inside radius 0.7.
-pub fn random_grid(seed: u64) -> RadianceGrid {
-    let geo = GridGeometry::new([12; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let n = geo.num_points();
-    let coords: Vec<u32> = (0..n as u32).collect();
-    let density: Vec<f32> = (0..n)
-        .map(|f| {
-            let [i, j, k] = geo.unflat(f);
-            let p = geo.grid_to_world(Vec3::new(i as f32, j as f32, k as f32));
-            if p.length() < 0.7 { 2.0 + 6.0 * rng.random::<f32>() } else { 0.0 }
-        })
-        .collect();
-    let sh: Vec<f32> = (0..n * 3).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect();
-    RadianceGrid::from_rows(geo, 0, coords, density, sh, &device())
 }
 
 /// A square camera of `size` pixels looking at the origin.

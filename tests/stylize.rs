@@ -15,10 +15,9 @@ use rand_chacha::ChaCha8Rng;
 use refnpr::field::checkpoint;
 use refnpr::field::composite::{self as render, BatchTensors};
 use refnpr::field::frozen::{DeviceSamples, FrozenSamples, render_colour, render_plain};
-use refnpr::field::grid::{CellLattice, GridGeometry, RadianceGrid};
+use refnpr::field::grid::{CellLattice, RadianceGrid};
 use refnpr::field::march::{self, MarchParams, Marcher};
 use refnpr::field::optim::{RmsStart, Rmsprop};
-use refnpr::field::view::{self, RenderSettings};
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
 use refnpr::scene::data::{self, procedural};
 use refnpr::stylize::config::{ColourNorm, Placement, RayKernel, StylizeConfig};
@@ -183,22 +182,10 @@ fn stored_features_round_to_f16_or_stay_exact() {
     assert_eq!((kept.bytes(), to_vec(kept.tensor())), (40 * 7 * 4, huge), "beyond f16's range: kept as f32");
 }
 
-/// A random grid with a blob of density in the middle and random DC colour.
+/// A random grid with a blob of density in the middle and random DC colour
+/// (`field::grid::blob_grid`) on the backend under test.
 fn random_grid(seed: u64) -> RadianceGrid {
-    let d = common::device();
-    let geo = GridGeometry::new([12; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let n = geo.num_points();
-    let coords: Vec<u32> = (0..n as u32).collect();
-    let density: Vec<f32> = (0..n)
-        .map(|f| {
-            let [i, j, k] = geo.unflat(f);
-            let p = geo.grid_to_world(Vec3::new(i as f32, j as f32, k as f32));
-            if p.length() < 0.7 { 2.0 + 6.0 * rng.random::<f32>() } else { 0.0 }
-        })
-        .collect();
-    let sh: Vec<f32> = (0..n * 3).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect();
-    RadianceGrid::from_rows(geo, 0, coords, density, sh, &d)
+    refnpr::field::grid::blob_grid(seed, &common::device())
 }
 
 /// The SH total variation's gradient (random subset of rows, local autodiff
@@ -542,13 +529,7 @@ fn test_psnr(run: &std::path::Path, truth: &data::Dataset) -> f32 {
     let ck = checkpoint::load_with(run, &d, false).unwrap();
     let mut sum = 0.0;
     for v in &truth.test {
-        let r = view::render_view(
-            &ck.grid,
-            &v.camera,
-            None,
-            &RenderSettings { chunk: 8192, ..ck.meta.render },
-            ck.meta.background,
-        );
+        let r = ck.render_view(&v.camera);
         sum += refnpr::util::metrics::psnr(&r.image.rgb, &v.rgb);
     }
     sum / truth.test.len() as f32
@@ -980,20 +961,7 @@ fn arf_baseline_with_the_released_codes_second_transfer() {
     let ck = checkpoint::load_with(&out, &d, false).unwrap();
     // The stylized checkpoint records svox2's zero corners: its renders use them too.
     assert_eq!(ck.meta.render.march.colour_corners, march::ColourCorners::Zero);
-    let renders: Vec<Vec<f32>> = ds
-        .train
-        .iter()
-        .map(|v| {
-            let r = view::render_view(
-                &ck.grid,
-                &v.camera,
-                None,
-                &RenderSettings { chunk: 8192, ..ck.meta.render },
-                ck.meta.background,
-            );
-            r.image.rgb
-        })
-        .collect();
+    let renders: Vec<Vec<f32>> = ds.train.iter().map(|v| ck.render_view(&v.camera).image.rgb).collect();
     let renders: Vec<&[f32]> = renders.iter().map(|r| &r[..]).collect();
     let got = colour_stats(&renders, ck.meta.background, TransferPixels::Scene).unwrap().mean;
     let style = data::composite_over(&image::open(case.join("style.png")).unwrap().to_rgba32f(), ck.meta.background);

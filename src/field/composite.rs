@@ -62,9 +62,9 @@ impl BatchTensors {
 pub struct Rendered {
     /// [rays, 3]
     pub rgb: Tensor<2>,
-    /// Expected depth sum(w_i t_i), [rays]
+    /// Expected depth sum(w_i t_i), `[rays]`
     pub depth: Tensor<1>,
-    /// Accumulated opacity 1 - T_final, [rays]
+    /// Accumulated opacity 1 - T_final, `[rays]`
     pub opacity: Tensor<1>,
 }
 

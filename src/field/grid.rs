@@ -530,6 +530,26 @@ impl RadianceGrid {
     }
 }
 
+/// A dense 12³ grid over [-1, 1]³ of SH degree 0: a blob of random
+/// density (2 to 8) inside radius 0.7, random colour coefficients
+/// everywhere, from `seed` (the tests' field for the colour passes).
+pub fn blob_grid(seed: u64, device: &Device) -> RadianceGrid {
+    use rand::{Rng, SeedableRng};
+    let geo = GridGeometry::new([12; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let n = geo.num_points();
+    let coords: Vec<u32> = (0..n as u32).collect();
+    let density: Vec<f32> = (0..n)
+        .map(|f| {
+            let [i, j, k] = geo.unflat(f);
+            let p = geo.grid_to_world(Vec3::new(i as f32, j as f32, k as f32));
+            if p.length() < 0.7 { 2.0 + 6.0 * rng.random::<f32>() } else { 0.0 }
+        })
+        .collect();
+    let sh: Vec<f32> = (0..n * 3).map(|_| rng.random::<f32>() * 2.0 - 1.0).collect();
+    RadianceGrid::from_rows(geo, 0, coords, density, sh, device)
+}
+
 /// A grid holding a textured solid sphere of radius 0.6 (density 40) in
 /// [-1,1]^3 at resolution `res`, SH degree 2; only the sphere and a
 /// one-voxel shell own rows, as after pruning.

@@ -180,3 +180,50 @@ pub fn render_view(
 ) -> ViewRender {
     ViewRenderer::new(grid, ndc, settings, background).view(camera)
 }
+
+/// Checked against the Burn graph and autodiff, on every backend the test
+/// command runs (`cargo test --lib graph_oracle`).
+#[cfg(test)]
+#[allow(clippy::print_stdout, clippy::print_stderr)] // the measured errors, shown with --nocapture
+mod graph_oracle {
+    use super::{RenderSettings, render_rays};
+    use crate::field::composite::{BatchTensors, composite};
+    use crate::field::host_render;
+    use crate::field::march;
+    use crate::scene::sh;
+    use crate::test_support::{device, params, sparse_degree2_grid, tol};
+    use crate::util::tensor::{floats, to_vec};
+
+    /// The plain-Rust renderer (`field::host_render`, what views rendered
+    /// without autodiff use on the CPU backends) gives the Burn graph's
+    /// colours, expected depths and opacities to 1e-5, on a sparse grid with
+    /// varied density and SH degree 2, rays that hit, graze and miss.
+    #[test]
+    fn host_render_matches_the_graph() {
+        let (grid, dens, shd, rays) = sparse_degree2_grid(12.0);
+        let (n, nb, dev) = (dens.len(), sh::num_basis(2), device());
+        let p = params(0.25);
+        let batch = march::generate_samples(&grid, &rays, &p);
+        assert!(batch.num_samples() > 200, "{} samples", batch.num_samples());
+        let bt = BatchTensors::new(&batch, None, &dev);
+        let graph =
+            composite(floats(dens.clone(), [n, 1], &dev), floats(shd.clone(), [n, 3 * nb], &dev), &bt, [0.2, 0.5, 0.9]);
+        let host = host_render::render_rays(&march::Marcher::new(&grid), &shd, &rays, &p, [0.2, 0.5, 0.9]);
+        assert_eq!(host.threshold_depth, batch.threshold_depth, "the fused pass marches the same samples");
+        for (name, host, graph) in [
+            ("rgb", host.rgb, to_vec(graph.rgb)),
+            ("depth", host.expected_depth, to_vec(graph.depth)),
+            ("opacity", host.opacity, to_vec(graph.opacity)),
+        ] {
+            assert_eq!(host.len(), graph.len(), "{name}");
+            let err = host.iter().zip(&graph).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+            println!("{name}: max |host - graph| = {err:.2e}");
+            assert!(err <= tol(1e-5) * graph.iter().fold(1.0f32, |m, v| m.max(v.abs())), "{name}: {err:.2e}");
+        }
+        let opacities = render_rays(&grid, &rays, &RenderSettings { march: p, chunk: 7 }, [0.2, 0.5, 0.9]).opacity;
+        assert!(
+            opacities.iter().any(|&o| o > 0.9) && opacities.iter().any(|&o| o < 0.1),
+            "hits and misses: {opacities:?}"
+        );
+    }
+}

@@ -306,7 +306,7 @@ fn resolve_style(dir: &Path, s: &str) -> PathBuf {
     }
 }
 
-/// Reads a style image as RGB in [0,1] at the camera's resolution: alpha is
+/// Reads a style image as RGB in `[0, 1]` at the camera's resolution: alpha is
 /// composited over `background`; another size is resized (Catmull-Rom, as
 /// the authors' bicubic) and reported in the returned note.
 pub fn read_style(path: &Path, width: u32, height: u32, background: [f32; 3]) -> Result<(Vec<f32>, Option<String>)> {

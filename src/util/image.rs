@@ -72,7 +72,7 @@ pub fn pixels(rgb: &[f32]) -> impl Iterator<Item = [f32; 3]> + '_ {
     rgb.chunks_exact(3).map(|c| [c[0], c[1], c[2]])
 }
 
-/// Quantises RGB floats in [0,1] to bytes.
+/// Quantises RGB floats in `[0, 1]` to bytes.
 pub fn to_rgb8(w: u32, h: u32, rgb: &[f32]) -> RgbImage {
     let bytes = rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect();
     RgbImage::from_raw(w, h, bytes).expect("buffer matches image size")

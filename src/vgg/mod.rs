@@ -30,7 +30,7 @@ use crate::vgg::model::Model;
 pub(crate) mod conv3x3;
 pub(crate) mod conv_op;
 pub mod features;
-pub mod model;
+pub(crate) mod model;
 pub(crate) mod staged;
 
 /// SHA-256 over the 13 convolutions' weights and biases (float32 LE, in

@@ -1,8 +1,8 @@
 //! Posed-image datasets: one `Dataset` type and a loader per layout.
 
-pub mod blender;
-pub mod llff;
-pub mod nsvf;
+pub(crate) mod blender;
+pub(crate) mod llff;
+pub(crate) mod nsvf;
 pub mod procedural;
 
 use crate::scene::camera::{Camera, Intrinsics, NdcParams, Ray, pose_is_valid};
@@ -50,7 +50,7 @@ impl Default for LoadOptions {
     }
 }
 
-/// One posed image (RGB in [0,1], row-major).
+/// One posed image (RGB in `[0, 1]`, row-major).
 #[derive(Debug, Clone)]
 pub struct View {
     pub name: String,
@@ -175,7 +175,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     Ok(ds)
 }
 
-/// Reads an image as RGB in [0,1], compositing alpha over `background`,
+/// Reads an image as RGB in `[0, 1]`, compositing alpha over `background`,
 /// optionally downscaled by an integer factor.
 pub fn read_rgb(path: &Path, background: [f32; 3], downscale: u32) -> Result<(u32, u32, Vec<f32>)> {
     if !path.exists() {
@@ -199,7 +199,7 @@ pub fn read_rgb(path: &Path, background: [f32; 3], downscale: u32) -> Result<(u3
     Ok((w, h, composite_over(&img, background)))
 }
 
-/// Interleaved RGB in [0,1] of an RGBA image composited over `background`.
+/// Interleaved RGB in `[0, 1]` of an RGBA image composited over `background`.
 pub fn composite_over(img: &image::Rgba32FImage, background: [f32; 3]) -> Vec<f32> {
     let mut rgb = Vec::with_capacity(img.pixels().len() * 3);
     for p in img.pixels() {
