@@ -40,6 +40,8 @@ test -s target/example-orbit/orbit/path.gif
 
 echo "== docs: the library's rustdoc, warnings (broken links included) denied"
 RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --lib --quiet
+echo "== doc examples (compiled; run unless marked no_run)"
+REFNPR_BACKEND=flex cargo test --doc
 
 STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input --skip robustness --skip a_killed_stylization)
 

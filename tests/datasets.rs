@@ -238,6 +238,9 @@ fn refused_input_has_a_typed_reason_a_caller_can_match() {
     let wrong = refnpr::field::checkpoint::load(&text, &common::device()).err().expect("a text file is refused");
     assert!(matches!(InputError::of(&wrong), Some(InputError::WrongKind { .. })), "{wrong:#}");
 
+    let gone = refnpr::reference::registration::RegistrationFile::load(&p.join("registration.bin")).err().unwrap();
+    assert!(matches!(InputError::of(&gone), Some(InputError::Missing { .. })), "{gone:#}");
+
     let npy_file = p.join("poses.npy");
     std::fs::write(&npy_file, b"\x93NUMPY\x01\x00garbage").unwrap();
     let corrupt = npy::read(&npy_file).err().expect("a cut header is refused");

@@ -104,6 +104,10 @@ pub fn load<T: DeserializeOwned>(path: &Path, magic: &[u8; 8], what: &str) -> Re
 /// Opens a file written by `save` (or in its layout, `util::bin_fields`)
 /// past its magic tag; with the file's size, the most its payload can hold.
 pub fn open_tagged(path: &Path, magic: &[u8; 8], what: &str) -> Result<(BufReader<File>, u64)> {
+    if !path.exists() {
+        let message = format!("{} does not exist (expected {what})", path.display());
+        return Err(InputError::Missing { path: path.into(), message }.into());
+    }
     let file = File::open(path).with_context(|| format!("cannot read {}", path.display()))?;
     let size = file.metadata().map(|m| m.len()).unwrap_or(0);
     let mut reader = BufReader::new(file);
