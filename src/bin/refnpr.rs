@@ -232,6 +232,21 @@ enum Command {
         out: PathBuf,
         #[arg(long, default_value_t = 0)]
         seed: u64,
+        /// A colour grade instead of the painterly repaint (a recolouring reference).
+        #[arg(long, value_enum)]
+        grade: Option<paint::Grade>,
+    },
+    /// Copies a dataset folder with every image colour-graded: the intended result of a
+    /// reference graded the same way (`paint --grade`), for `eval --gt`.
+    Recolour {
+        /// The dataset folder (Blender or procedural layout).
+        #[arg(long)]
+        data: PathBuf,
+        /// The new folder.
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, value_enum)]
+        grade: paint::Grade,
     },
     /// What this build runs on: backends, wgpu adapters, CPU threads and SIMD, memory, VGG16 weights.
     Info {
@@ -393,7 +408,12 @@ fn run() -> Result<()> {
             run_stylize_command(cli.command, stylize, &progress)
         }
         Command::Eval { .. } => run_eval(cli.command, &progress),
-        Command::Paint { input, out, seed } => run_paint(&input, &out, seed),
+        Command::Paint { input, out, seed, grade } => run_paint(&input, &out, seed, grade),
+        Command::Recolour { data, out, grade } => {
+            let n = paint::recolour_dataset(&data, &out, grade)?;
+            println!("wrote {} with {n} images graded ({grade:?})", out.display());
+            Ok(())
+        }
         Command::Info { json } => run_info(json),
         Command::Fuzz { target, seconds, cases, case_seconds, seed, memory_mb, shared_data } => {
             let limits = fuzz::Limits { max_cases: cases, max_seconds: seconds, case_seconds, seed };
@@ -472,11 +492,15 @@ fn run_eval(command: Command, progress: &Console) -> Result<()> {
 }
 
 /// `refnpr paint`: the painterly repaint filter on an image.
-fn run_paint(input: &Path, out: &Path, seed: u64) -> Result<()> {
+fn run_paint(input: &Path, out: &Path, seed: u64, grade: Option<paint::Grade>) -> Result<()> {
     let img = ::image::open(input).with_context(|| format!("cannot read image {}", input.display()))?.to_rgba32f();
     let (w, h) = (img.width(), img.height());
     let rgb = data::composite_over(&img, [1.0; 3]);
-    image::save_png(out, w, h, &paint::painterly(&rgb, w as usize, h as usize, seed))?;
+    let painted = match grade {
+        Some(g) => g.image(&rgb),
+        None => paint::painterly(&rgb, w as usize, h as usize, seed),
+    };
+    image::save_png(out, w, h, &painted)?;
     println!("wrote {}", out.display());
     Ok(())
 }

@@ -11,7 +11,10 @@
 //!   the paper's table;
 //! - `gt_psnr`, `gt_psnr_occluded`: PSNR of the stylized test views against a
 //!   ground-truth stylized dataset (the procedural scene's `stylized/`), over
-//!   all pixels and over the surface pixels no reference camera sees;
+//!   all pixels and over the surface pixels no reference camera sees; also
+//!   `gt_psnr_seen` (the surface some reference sees), `gt_psnr_near` /
+//!   `gt_psnr_far` (views within 45° of a reference's viewing direction and
+//!   the others) and `gt_views` (each view's angle and PSNRs);
 //! - `stability`: colour RMSE between render-path frames warped into each
 //!   other with the field's depth (frames 1 and 7 apart), over points visible
 //!   in both;
@@ -211,6 +214,13 @@ pub struct StylizationEval {
     pub gt: Option<PathBuf>,
     pub gt_psnr: Option<f32>,
     pub gt_psnr_occluded: Option<f32>,
+    /// Over the surface pixels some reference sees.
+    pub gt_psnr_seen: Option<f32>,
+    /// Over the test views within [`NEAR_DEGREES`] of a reference camera, and the others.
+    pub gt_psnr_near: Option<f32>,
+    pub gt_psnr_far: Option<f32>,
+    /// Each test view's angle to the nearest reference and its PSNRs.
+    pub gt_views: Vec<TruthView>,
     /// Fraction of the test views' surface pixels no reference sees.
     pub occluded_fraction: Option<f32>,
     pub stability: Vec<Stability>,
@@ -310,13 +320,17 @@ pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedR
         ref_lpips,
         ref_lpips_frames,
         gt: job.gt.clone(),
-        gt_psnr: truth.map(|t| t.all),
-        gt_psnr_occluded: truth.and_then(|t| t.occluded),
-        occluded_fraction: truth.map(|t| t.occluded_fraction),
+        gt_psnr: truth.as_ref().map(|t| t.all),
+        gt_psnr_occluded: truth.as_ref().and_then(|t| t.occluded),
+        gt_psnr_seen: truth.as_ref().and_then(|t| t.seen),
+        gt_psnr_near: truth.as_ref().and_then(|t| t.near),
+        gt_psnr_far: truth.as_ref().and_then(|t| t.far),
+        occluded_fraction: truth.as_ref().map(|t| t.occluded_fraction),
         stability,
         speckle,
-        speckle_test: truth.map(|t| t.speckle),
-        gt_speckle: truth.map(|t| t.gt_speckle),
+        speckle_test: truth.as_ref().map(|t| t.speckle),
+        gt_speckle: truth.as_ref().map(|t| t.gt_speckle),
+        gt_views: truth.map(|t| t.views).unwrap_or_default(),
         robustness_psnr: None,
         robustness_frames: Vec::new(),
         path_frames: path.len(),
@@ -353,15 +367,51 @@ fn ref_lpips(
     Ok((distances.iter().sum::<f32>() / distances.len().max(1) as f32, used))
 }
 
+/// Views within this angle of a reference camera's viewing direction are
+/// `near` it, the others `far` (the unseen-surface figures by distance).
+pub const NEAR_DEGREES: f32 = 45.0;
+
 /// PSNRs of the stylized test views against a ground-truth stylized dataset.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 struct TruthPsnrs {
     all: f32,
     /// Over the surface pixels no reference sees (None when there are none).
     occluded: Option<f32>,
+    /// Over the surface pixels some reference sees.
+    seen: Option<f32>,
     occluded_fraction: f32,
     speckle: f32,
     gt_speckle: f32,
+    views: Vec<TruthView>,
+    /// Over all pixels of the views within [`NEAR_DEGREES`] of a reference, and of the others.
+    near: Option<f32>,
+    far: Option<f32>,
+}
+
+/// One test view against the ground truth.
+#[derive(Debug, Clone, Serialize)]
+pub struct TruthView {
+    /// Angle (degrees) between its viewing direction and the nearest reference camera's.
+    pub angle: f32,
+    pub psnr: f32,
+    pub psnr_seen: Option<f32>,
+    pub psnr_unseen: Option<f32>,
+}
+
+/// Squared error and value count, summed.
+#[derive(Debug, Clone, Copy, Default)]
+struct ErrorSum(f64, usize);
+
+impl ErrorSum {
+    fn add(&mut self, part: Option<(f64, usize)>) {
+        if let Some((s, n)) = part {
+            (self.0, self.1) = (self.0 + s, self.1 + n);
+        }
+    }
+
+    fn psnr(self) -> Option<f32> {
+        (self.1 > 0).then(|| metrics::psnr_from_mse((self.0 / self.1 as f64) as f32))
+    }
 }
 
 /// (speckled, counted) pixels of `rgb` over the surface pixels of `render`:
@@ -392,32 +442,61 @@ fn ground_truth_psnrs(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, 
     );
     let renderer = ck.renderer();
     let refs: Vec<SurfaceRender> = case.cameras(dataset)?.iter().map(|c| surface_of(&renderer, c)).collect();
-    let (mut all, mut occ, mut surface, mut hidden) = ((0.0f64, 0usize), (0.0f64, 0usize), 0usize, 0usize);
+    let [mut all, mut occ, mut seen_sum, mut near, mut far] = [ErrorSum::default(); 5];
+    let (mut surface, mut hidden) = (0usize, 0usize);
     let (mut speckle, mut gt_speckle) = ((0, 0), (0, 0));
+    let mut views = Vec::new();
     for (v, t) in gt.test.iter().enumerate() {
         ensure!(
             t.camera.intrinsics.width == dataset.test[v].camera.intrinsics.width,
             "ground truth test view {v} has another size"
         );
         let r = surface_of(&renderer, &t.camera);
-        all = (all.0 + metrics::squared_error(&r.image.rgb, &t.rgb), all.1 + r.image.rgb.len());
         let seen = visible_from(&r.points, &refs, tol);
         let unseen: Vec<bool> = r.points.iter().zip(&seen).map(|(p, s)| p.is_some() && !s).collect();
+        let seen: Vec<bool> = r.points.iter().zip(&seen).map(|(p, s)| p.is_some() && *s).collect();
         surface += r.points.iter().filter(|p| p.is_some()).count();
         hidden += unseen.iter().filter(|u| **u).count();
-        if let Some((s, n)) = psnr_masked(&r.image.rgb, &t.rgb, &unseen) {
-            occ = (occ.0 + s, occ.1 + n);
+        let whole = (metrics::squared_error(&r.image.rgb, &t.rgb), r.image.rgb.len());
+        let (on_seen, on_unseen) =
+            (psnr_masked(&r.image.rgb, &t.rgb, &seen), psnr_masked(&r.image.rgb, &t.rgb, &unseen));
+        all.add(Some(whole));
+        occ.add(on_unseen);
+        seen_sum.add(on_seen);
+        let angle = angle_to_references(&t.camera, &refs);
+        if angle <= NEAR_DEGREES {
+            near.add(Some(whole))
+        } else {
+            far.add(Some(whole))
         }
+        let psnr_of = |part: Option<(f64, usize)>| part.and_then(|p| ErrorSum(p.0, p.1).psnr());
+        views.push(TruthView {
+            angle,
+            psnr: psnr_of(Some(whole)).unwrap_or(f32::INFINITY),
+            psnr_seen: psnr_of(on_seen),
+            psnr_unseen: psnr_of(on_unseen),
+        });
         speckle = add_counts(speckle, speckle_of(&r, &r.image.rgb));
         gt_speckle = add_counts(gt_speckle, speckle_of(&r, &t.rgb));
     }
     Ok(TruthPsnrs {
-        all: metrics::psnr_from_mse((all.0 / all.1 as f64) as f32),
-        occluded: (occ.1 > 0).then(|| metrics::psnr_from_mse((occ.0 / occ.1 as f64) as f32)),
+        all: all.psnr().unwrap_or(f32::INFINITY),
+        occluded: occ.psnr(),
+        seen: seen_sum.psnr(),
         occluded_fraction: hidden as f32 / surface.max(1) as f32,
         speckle: speckle_fraction(speckle),
         gt_speckle: speckle_fraction(gt_speckle),
+        views,
+        near: near.psnr(),
+        far: far.psnr(),
     })
+}
+
+/// The smallest angle (degrees) between `camera`'s viewing direction and a reference camera's.
+fn angle_to_references(camera: &Camera, refs: &[SurfaceRender]) -> f32 {
+    refs.iter()
+        .map(|r| camera.forward().dot(r.camera.forward()).clamp(-1.0, 1.0).acos().to_degrees())
+        .fold(f32::INFINITY, f32::min)
 }
 
 /// Short- and long-range consistency along the path.

@@ -9,6 +9,7 @@ use std::path::Path;
 use crate::field::march::ColourCorners;
 use crate::field::optim::RmsStart;
 use crate::reference::r3::RegisterParams;
+use crate::stylize::colour_map::ColourMapConfig;
 use crate::util::config;
 
 /// How the SH learning rate moves over a stylization.
@@ -137,6 +138,11 @@ pub struct LossConfig {
     pub image_tv: f32,
     /// Total variation on the SH grid, on a random `tv_fraction` of the voxels per step.
     pub tv_sh: f32,
+    /// The same during the refit to the photos (code: `tv_sh`). With
+    /// RMSprop each picked voxel's TV gradient becomes a full-rate step
+    /// however small it is, and on lego it pulls the refit from 24.7 down to
+    /// 21.1 dB (without it: up to 29.8 dB).
+    pub refit_tv_sh: f32,
     pub tv_fraction: f32,
     /// `tv_sh` weighs each picked voxel's TV (svox2: its gradient is
     /// `tv_sh` x the unit difference direction however many are picked)
@@ -163,6 +169,7 @@ impl Default for LossConfig {
             smooth_feature: 0.2,
             image_tv: 1.0,
             tv_sh: 1e-3,
+            refit_tv_sh: 0.0,
             tv_fraction: 0.01,
             tv_sh_per_voxel: true,
             tv_sh_per_channel: true,
@@ -280,6 +287,8 @@ pub struct StylizeConfig {
     pub ablation: AblationConfig,
     pub arf: ArfConfig,
     pub register: RegisterParams,
+    /// The reference's colour mapping carried to every surface (`colour_map`).
+    pub colour_map: ColourMapConfig,
     /// Colour at voxels with empty corners, for the stylized field (its
     /// checkpoint records it, so every render of it uses the same).
     pub colour_corners: ColourCorners,
@@ -312,6 +321,7 @@ impl Default for StylizeConfig {
             ablation: AblationConfig::default(),
             arf: ArfConfig::default(),
             register: RegisterParams::default(),
+            colour_map: ColourMapConfig::default(),
             colour_corners: ColourCorners::Renormalised,
             min_sample_weight: 1e-5,
             sample_cache_mb: 2048,
@@ -363,6 +373,7 @@ impl StylizeConfig {
             ("loss.smooth_feature", l.smooth_feature),
             ("loss.image_tv", l.image_tv),
             ("loss.tv_sh", l.tv_sh),
+            ("loss.refit_tv_sh", l.refit_tv_sh),
             ("arf.nnfm", self.arf.nnfm),
             ("arf.content", self.arf.content),
         ] {
@@ -374,6 +385,7 @@ impl StylizeConfig {
         );
         ensure!(l.tv_fraction > 0.0 && l.tv_fraction <= 1.0, "loss.tv_fraction must be in (0, 1]");
         ensure!((0.0..1.0).contains(&self.min_sample_weight), "min_sample_weight must be in [0, 1)");
+        self.colour_map.validate()?;
         self.register.validate()
     }
 }

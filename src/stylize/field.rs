@@ -13,6 +13,7 @@ use crate::field::frozen::{self, FrozenSamples};
 use crate::field::grid::{CellLattice, RadianceGrid};
 use crate::field::optim::{Rmsprop, RowSubset, TvNorm, total_variation};
 use crate::scene::sh;
+use crate::stylize::colour_map::ColourMap;
 use crate::stylize::colour_transfer::ColourTransfer;
 use crate::util::chunk_ranges;
 use crate::util::tensor::{assign_rows, floats, indices, is_host_memory, select_rows, to_vec};
@@ -145,6 +146,18 @@ impl StyleField {
             (0..3).map(|i| (0.5 * tf.matrix[i].iter().sum::<f32>() + tf.offset[i] - 0.5) / sh::C0).collect();
         self.grid.sh =
             self.grid.sh.clone().matmul(floats(transposed, [3, 3], &device)) + floats(shift, [1, 3], &device);
+    }
+
+    /// Recolours every voxel's degree-0 colour `c = C0 s + 0.5` through
+    /// `map` (before the renderer's clamp, as `apply_colour_transfer`).
+    pub fn apply_colour_map(&mut self, map: &ColourMap) {
+        let device = self.grid.device();
+        let sh = to_vec(self.grid.sh.clone());
+        let mapped: Vec<f32> = sh
+            .chunks_exact(3)
+            .flat_map(|s| map.apply([0, 1, 2].map(|k| sh::C0 * s[k] + 0.5)).map(|c| (c - 0.5) / sh::C0))
+            .collect();
+        self.grid.sh = floats(mapped, [sh.len() / 3, 3], &device);
     }
 
     /// The RMSprop running averages `[rows, 3]`.

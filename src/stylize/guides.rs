@@ -7,9 +7,11 @@ use anyhow::Result;
 
 use crate::scene::camera::Camera;
 use crate::stylize::Method;
+use crate::stylize::colour_map::ColourMap;
 use crate::stylize::config::WhiteOn;
 use crate::stylize::step::{Guidance, StyleStep, ViewGuide};
-use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3, ReferencePair, StoredFeatures, Template};
+use crate::stylize::styles::is_background;
+use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, StoredFeatures, Template};
 use crate::util::image::Image;
 use crate::util::progress::{Event, Phase, Progress};
 use crate::util::tensor::is_host_memory;
@@ -22,7 +24,7 @@ pub(crate) fn guidance(
     st: &mut StyleStep,
     styles: &[Image],
     keep_content: bool,
-    colour: bool,
+    colour: Option<ColourSource>,
     progress: &dyn Progress,
 ) -> Result<(Guidance, f32)> {
     st.cache_samples();
@@ -41,12 +43,21 @@ pub(crate) fn guidance(
     Ok((Guidance { template, style_bank, guides }, matched))
 }
 
+/// Where L_color's targets come from.
+#[derive(Clone, Copy)]
+pub(crate) enum ColourSource<'m> {
+    /// The TCM-matched reference patches (the paper).
+    Matched,
+    /// The colour map over the view's own content render.
+    Mapped(&'m ColourMap),
+}
+
 /// Content renders, features, TCM matches and colour targets of every view.
 pub(crate) fn guides(
     st: &StyleStep,
     template: Option<&Template>,
     keep_content: bool,
-    colour: bool,
+    colour: Option<ColourSource>,
     progress: &dyn Progress,
 ) -> Result<(Vec<ViewGuide>, f32)> {
     let blocks: Vec<&[VggLayer]> = match st.method() {
@@ -68,18 +79,23 @@ pub(crate) fn guides(
         } else {
             &content
         };
-        let (raw, colour_desc) = tcm::image_features(&st.vgg, vgg_input, &st.ad, &blocks, colour)?;
+        let matched_colour = matches!(colour, Some(ColourSource::Matched));
+        let (raw, colour_desc) = tcm::image_features(&st.vgg, vgg_input, &st.ad, &blocks, matched_colour)?;
         let matches = template.map(|t| t.matches(&raw, st.cfg().search_chunk)).unwrap_or_default();
-        let colour = match (template, colour_desc) {
-            (Some(t), Some(d)) => {
-                let l = &st.cfg().loss;
-                let white = (l.colour_white_on == WhiteOn::Content).then_some(l.colour_white);
-                let c = t.colour_targets(d, &content, l.colour_max_distance, white, st.cfg().search_chunk);
-                matched += c.matched_fraction / n as f32;
-                Some(c)
+        let l = &st.cfg().loss;
+        let white = (l.colour_white_on == WhiteOn::Content).then_some(l.colour_white);
+        let colour = match (template, colour_desc, colour) {
+            (Some(t), Some(d), _) => {
+                Some(t.colour_targets(d, &content, l.colour_max_distance, white, st.cfg().search_chunk))
+            }
+            (Some(_), None, Some(ColourSource::Mapped(map))) => {
+                let background = st.background();
+                let mapped = map.apply_image(&content, |c| !is_background(&c, background));
+                Some(ColourTargets::from_mapped(&content, &mapped, white, &st.device))
             }
             _ => None,
         };
+        matched += colour.as_ref().map_or(0.0, |c| c.matched_fraction / n as f32);
         let content = if keep_content {
             raw.into_iter().map(|features| StoredFeatures::store(features, half_content)).collect()
         } else {

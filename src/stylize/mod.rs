@@ -29,6 +29,7 @@
 //! `run` (`refnpr stylize` from files to files: the loops, resume points
 //! and phase costs).
 
+pub mod colour_map;
 pub mod colour_transfer;
 pub mod config;
 pub mod field;

@@ -20,9 +20,10 @@ use crate::reference::case::ReferenceCase;
 use crate::reference::registration::{PhotoRun, RegistrationFile, lift_references, register_case};
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
+use crate::stylize::colour_map::ColourMap;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::config::StylizeConfig;
-use crate::stylize::guides;
+use crate::stylize::guides::{self, ColourSource};
 use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::step::{Guidance, StyleStep};
 use crate::stylize::styles::{arf_colour_transfer, is_background, read_styles, style_colour_stats};
@@ -89,7 +90,9 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         Stylization::new(job, StyleStep::new(job, &dataset, ck.grid, &photo_meta, registration), colour_transfer);
     let start = st.refit_or_resume(resumed.as_ref(), &mut phases, progress)?;
     let colour = job.method == Method::RefNpr && job.config.ablation.use_colour_loss && case.color_pre;
+    st.fit_colour_map(&styles, progress);
     let (guidance, colour_matched) = st.content_phase(&styles, colour, image_size, &mut phases, progress)?;
+    st.recolour_field();
     let sample_cache = st.step.samples.report(job.config.sample_cache_mb);
     if let Some(state) = resumed {
         st.restore(state);
@@ -145,6 +148,8 @@ struct Stylization<'a> {
     step: StyleStep<'a>,
     /// ARF: the photos are recoloured with this before the refit.
     colour_transfer: Option<ColourTransfer>,
+    /// Ref-NPR with `[colour_map]` on: the references' colour mapping.
+    colour_map: Option<ColourMap>,
     curve: Vec<CurvePoint>,
     /// The field after the refit and when the smooth update began: the
     /// guides were built from them, so a resumed run rebuilds them from these.
@@ -165,6 +170,7 @@ impl<'a> Stylization<'a> {
             job,
             step,
             colour_transfer,
+            colour_map: None,
             curve: Vec::new(),
             refit_sh: Vec::new(),
             smooth_sh: None,
@@ -236,6 +242,29 @@ impl<'a> Stylization<'a> {
         Ok(())
     }
 
+    /// Ref-NPR with `[colour_map]` on: fits the references' colour mapping
+    /// on their content renders from the refit field.
+    fn fit_colour_map(&mut self, styles: &[Image], progress: &dyn Progress) {
+        let cfg = &self.job.config.colour_map;
+        if self.job.method != Method::RefNpr || !(cfg.init_field || cfg.colour_targets) {
+            return;
+        }
+        let contents: Vec<Image> = (0..styles.len()).map(|r| self.step.render_reference(r)).collect();
+        let pairs: Vec<(&Image, &Image)> = contents.iter().zip(styles).collect();
+        let background = self.step.background();
+        let map = ColourMap::fit(&pairs, cfg, |c| !is_background(&c, background));
+        progress.event(Event::Detail(format!("colour map fitted on {} reference pixels", map.pixels)));
+        self.colour_map = Some(map);
+    }
+
+    /// `colour_map.init_field`: the refit field's colours through the map
+    /// (after the first guides, whose content renders stay the photos').
+    fn recolour_field(&mut self) {
+        if let (true, Some(map)) = (self.job.config.colour_map.init_field, &self.colour_map) {
+            self.step.field.apply_colour_map(map);
+        }
+    }
+
     /// The content phase: the sample cache, then the first guides; writes
     /// `colour_targets.json` when L_color is on. Returns the guidance and
     /// the fraction of relu5 positions the colour loss supervises.
@@ -249,8 +278,12 @@ impl<'a> Stylization<'a> {
     ) -> Result<(Guidance, f32)> {
         let views = self.step.dataset().train.len();
         let keep = keeps_content(self.job);
+        let source = colour.then_some(match (&self.colour_map, self.job.config.colour_map.colour_targets) {
+            (Some(map), true) => ColourSource::Mapped(map),
+            _ => ColourSource::Matched,
+        });
         let (guidance, matched) =
-            phases.run("content", views, || guides::guidance(&mut self.step, styles, keep, colour, progress))?;
+            phases.run("content", views, || guides::guidance(&mut self.step, styles, keep, source, progress))?;
         let cache = self.step.samples.report(self.job.config.sample_cache_mb);
         progress.event(Event::Detail(format!(
             "sample cache: {} of {} views{}, {:.0} MB of {} ({} samples in {} cells)",
@@ -402,9 +435,15 @@ impl<'a> Stylization<'a> {
         };
         let m = transfer::measure(|| -> Result<_> {
             let t = guides::template(&self.step, styles)?;
-            Ok((guides::guides(&self.step, Some(&t), false, false, progress)?.0, t))
+            Ok((guides::guides(&self.step, Some(&t), false, None, progress)?.0, t))
         });
-        let (guides, t) = m.value?;
+        let (mut guides, t) = m.value?;
+        if self.job.config.colour_map.in_smooth_update {
+            // L_color stays, with the first guides' targets (from the photo content renders).
+            for (new, old) in guides.iter_mut().zip(&mut guidance.guides) {
+                new.colour = old.colour.take();
+            }
+        }
         (guidance.guides, guidance.template) = (guides, Some(t));
         match now {
             Some(now) => self.step.field.grid.sh = now,

@@ -258,7 +258,7 @@ impl<'a> StyleStep<'a> {
             } else {
                 Vec::new()
             };
-            let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
+            let tv = self.field.tv_rows(&self.sh_tv(false), &mut rng);
             let cells: Vec<&[u32]> =
                 std::iter::once(&samples.cell_keys[..]).chain(pseudo.iter().flat_map(PseudoRays::cells)).collect();
             let rows = self.field.step_rows(self.cfg.optim.sparse, &cells, &tv);
@@ -283,7 +283,7 @@ impl<'a> StyleStep<'a> {
             Some(g) => grad + g,
             None => grad,
         };
-        let grad = self.profile.time("sh_tv", || self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows));
+        let grad = self.profile.time("sh_tv", || self.field.add_tv_gradient(grad, &self.sh_tv(false), &tv, &rows));
         let lr = self.learning_rate(log_lerp(s.lr, s.lr_final, step as f32 / total_steps.max(1) as f32));
         let started = std::time::Instant::now();
         self.optimiser_step(grad, rows, lr);
@@ -314,10 +314,11 @@ impl<'a> StyleStep<'a> {
         }
     }
 
-    fn sh_tv(&self) -> ShTv {
+    /// The SH TV of an image step, or of a refit step (`refit`).
+    fn sh_tv(&self, refit: bool) -> ShTv {
         let l = &self.cfg.loss;
         ShTv {
-            weight: l.tv_sh,
+            weight: if refit { l.refit_tv_sh } else { l.tv_sh },
             fraction: l.tv_fraction,
             per_voxel: l.tv_sh_per_voxel,
             per_channel: l.tv_sh_per_channel,
@@ -341,7 +342,7 @@ impl<'a> StyleStep<'a> {
         let target: Vec<f32> = picks.iter().flat_map(|&i| colours[i]).collect();
         let samples = self.profile.time("sample_lists", || self.samples.training_pixel_lists(&self.field.grid, &picks));
         let (tv, rows) = self.profile.time("step_rows", || {
-            let tv = self.field.tv_rows(&self.sh_tv(), &mut rng);
+            let tv = self.field.tv_rows(&self.sh_tv(true), &mut rng);
             let rows = self.field.step_rows(self.cfg.optim.sparse, &[&samples.cell_keys], &tv);
             (tv, rows)
         });
@@ -352,7 +353,7 @@ impl<'a> StyleStep<'a> {
                 self.mse_gradient(RaySet::Host(&samples), &rows, target, 1.0)
             }
         });
-        let grad = self.profile.time("sh_tv", || self.field.add_tv_gradient(grad, &self.sh_tv(), &tv, &rows));
+        let grad = self.profile.time("sh_tv", || self.field.add_tv_gradient(grad, &self.sh_tv(true), &tv, &rows));
         let lr = self.learning_rate(s.lr_refit);
         let started = std::time::Instant::now();
         self.optimiser_step(grad, rows, lr);
@@ -596,7 +597,7 @@ impl<'a> StyleStep<'a> {
                         }
                     }
                 }
-                if let (Some(c), false) = (&guide.colour, smooth) {
+                if let Some(c) = guide.colour.as_ref().filter(|_| !smooth || self.cfg.colour_map.in_smooth_update) {
                     let patches = losses::patch_means(image, tcm::COLOUR_PATCH);
                     let mask = match l.colour_white_on {
                         WhiteOn::Content => c.mask.clone(),

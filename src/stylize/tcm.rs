@@ -237,6 +237,27 @@ pub struct ViewColourTargets {
 }
 
 impl ColourTargets {
+    /// Targets from the colour map: each relu5 patch's mean of `mapped`
+    /// (the view's content render through `colour_map::ColourMap`),
+    /// supervised where the content patch is not background (`white`).
+    /// No template position is their source (`source` is empty).
+    pub fn from_mapped(content: &Image, mapped: &Image, white: Option<f32>, device: &Device) -> ColourTargets {
+        let own = to_vec(patch_means(content.tensor(device), COLOUR_PATCH));
+        let target = patch_means(mapped.tensor(device), COLOUR_PATCH);
+        let mask: Vec<f32> = own
+            .chunks_exact(3)
+            .map(|p| if white.is_some_and(|w| p.iter().all(|&v| v > w)) { 0.0 } else { 1.0 })
+            .collect();
+        let n = mask.len();
+        let matched = mask.iter().filter(|&&m| m > 0.0).count();
+        ColourTargets {
+            target,
+            source: Vec::new(),
+            mask: floats(mask, [n, 1], device),
+            matched_fraction: matched as f32 / n.max(1) as f32,
+        }
+    }
+
     pub fn to_record(&self, view: usize, width: usize, height: usize) -> ViewColourTargets {
         let [rows, cols] = block_size(&RELU5, height, width);
         let target = to_vec(self.target.clone());

@@ -2,6 +2,14 @@
 //! without painting by hand (`refnpr paint`) and for the demo's second
 //! reference case: a warm-shifted, posterized base overlaid with short
 //! brush strokes that follow the image's edges. Deterministic under a seed.
+//! Also colour grades (`Grade`): recolourings that are a function of the
+//! pixel's colour alone, so a graded dataset is the exact intended result of
+//! a graded reference at every view (`recolour_dataset`), the measure of how
+//! far a reference's colours reach surfaces it never sees.
+
+use std::path::Path;
+
+use anyhow::{Context, Result, ensure};
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -118,9 +126,119 @@ pub fn painterly(rgb: &[f32], width: usize, height: usize, seed: u64) -> Vec<f32
     out
 }
 
+/// A recolouring an artist might make, as a function of the colour alone.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Grade {
+    /// Every hue rotated by 150°, saturation raised a little (greys stay grey).
+    Hue,
+    /// Material repaints: yellows become blue, greys and darks a teal tint; other colours stay.
+    Materials,
+    /// A film grade: shadows towards teal, highlights towards orange, more contrast.
+    TealOrange,
+}
+
+fn smoothstep(lo: f32, hi: f32, x: f32) -> f32 {
+    let t = ((x - lo) / (hi - lo)).clamp(0.0, 1.0);
+    t * t * (3.0 - 2.0 * t)
+}
+
+/// The signed hue difference `to - from` in (-180, 180].
+fn hue_delta(from: f32, to: f32) -> f32 {
+    let d = (to - from).rem_euclid(360.0);
+    if d > 180.0 { d - 360.0 } else { d }
+}
+
+impl Grade {
+    /// The graded colour of one pixel; near-white background stays as it is.
+    pub fn apply(self, p: [f32; 3]) -> [f32; 3] {
+        if p.iter().all(|&c| c > BACKGROUND) {
+            return p;
+        }
+        let out = match self {
+            Grade::Hue => {
+                let [h, s, v] = rgb_to_hsv(p);
+                hsv_to_rgb([h + 150.0, (s * 1.15).min(1.0), v])
+            }
+            Grade::Materials => {
+                let [h, s, v] = rgb_to_hsv(p);
+                // Yellow (hue near 50°, saturated) -> blue; greys and darks -> a teal tint.
+                let yellow = (1.0 - smoothstep(20.0, 35.0, hue_delta(50.0, h).abs())) * smoothstep(0.2, 0.4, s);
+                let grey = 1.0 - smoothstep(0.1, 0.3, s);
+                let hue = h + yellow * hue_delta(h, 215.0);
+                let hue = hue + grey * hue_delta(hue, 175.0);
+                hsv_to_rgb([hue, (s + grey * 0.45).min(1.0), v])
+            }
+            Grade::TealOrange => {
+                let l = luminance(&p);
+                let (teal, orange) = ([-0.10, 0.03, 0.10], [0.12, 0.03, -0.12]);
+                std::array::from_fn(|c| 0.5 + 1.15 * (p[c] - 0.5) + (1.0 - l) * teal[c] + l * orange[c])
+            }
+        };
+        out.map(|c| c.clamp(0.0, 1.0))
+    }
+
+    /// Grades an interleaved RGB image.
+    pub fn image(self, rgb: &[f32]) -> Vec<f32> {
+        rgb.chunks_exact(3).flat_map(|p| self.apply([p[0], p[1], p[2]])).collect()
+    }
+}
+
+/// Copies the dataset folder `src` to `out` with every colour image graded
+/// (alpha kept; depth and normal maps copied as they are): the intended
+/// result of a reference graded the same way, at every view (`refnpr eval --gt`).
+pub fn recolour_dataset(src: &Path, out: &Path, grade: Grade) -> Result<usize> {
+    ensure!(src.is_dir(), "{}: not a dataset folder", src.display());
+    ensure!(!out.exists(), "{} exists: choose a new folder", out.display());
+    let mut graded = 0;
+    copy_graded(src, out, grade, &mut graded)?;
+    Ok(graded)
+}
+
+fn copy_graded(src: &Path, out: &Path, grade: Grade, graded: &mut usize) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    for entry in std::fs::read_dir(src).with_context(|| format!("cannot read {}", src.display()))? {
+        let path = entry?.path();
+        let to = out.join(path.file_name().expect("a directory entry has a name"));
+        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+        let is_map = name.contains("_depth") || name.contains("_normal") || name.ends_with("_id.png");
+        if path.is_dir() {
+            copy_graded(&path, &to, grade, graded)?;
+        } else if name.ends_with(".png") && !is_map {
+            let mut img =
+                ::image::open(&path).with_context(|| format!("cannot read image {}", path.display()))?.to_rgba32f();
+            for px in img.pixels_mut() {
+                let [r, g, b] = grade.apply([px[0], px[1], px[2]]);
+                (px[0], px[1], px[2]) = (r, g, b);
+            }
+            let rgba = ::image::DynamicImage::ImageRgba32F(img).to_rgba8();
+            rgba.save(&to).with_context(|| format!("cannot write {}", to.display()))?;
+            *graded += 1;
+        } else {
+            std::fs::copy(&path, &to).with_context(|| format!("cannot copy {} to {}", path.display(), to.display()))?;
+        }
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn grades_keep_white_change_colours_and_greys_as_named() {
+        for g in [Grade::Hue, Grade::Materials, Grade::TealOrange] {
+            assert_eq!(g.apply([1.0, 1.0, 1.0]), [1.0, 1.0, 1.0], "{g:?} moved the background");
+        }
+        let yellow = [0.9, 0.75, 0.1];
+        let blue = Grade::Materials.apply(yellow);
+        assert!(blue[2] > blue[0] && blue[2] > 0.5, "materials: yellow -> {blue:?}");
+        let red = [0.8, 0.1, 0.1];
+        let kept = Grade::Materials.apply(red);
+        assert!(kept.iter().zip(red).all(|(a, b)| (a - b).abs() < 1e-4), "materials moved red: {kept:?}");
+        let grey = Grade::Hue.apply([0.4, 0.4, 0.4]);
+        assert!(grey.iter().all(|c| (c - 0.4).abs() < 1e-5), "hue moved a grey: {grey:?}");
+        assert_ne!(Grade::Hue.apply(yellow), yellow);
+    }
 
     #[test]
     fn hsv_round_trips() {

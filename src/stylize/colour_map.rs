@@ -1,0 +1,200 @@
+//! The reference's colour mapping, carried to surfaces it never sees.
+//!
+//! A painted reference S_R and the content render I_R of the same camera are
+//! pixel-aligned: each scene pixel says "this photo colour became that
+//! painted colour". [`ColourMap::fit`] turns those pairs into a smooth map
+//! over colour space: the painted-minus-photo offsets are binned by photo
+//! colour, and the map at any colour is a Gaussian-weighted mean of the
+//! bins' offsets near it, shrunk towards no change where few pixels are near
+//! (a colour the reference never shows keeps its photo colour). Applied to
+//! the refit field's per-voxel colours it recolours every surface of the
+//! same material the same way, consistent across views by construction;
+//! applied to each view's content render it gives L_color targets that do
+//! not depend on which reference patch a view happens to match.
+
+use serde::{Deserialize, Serialize};
+
+use crate::util::image::Image;
+
+/// `[colour_map]` of the stylize config.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ColourMapConfig {
+    /// Recolour the refit field's colours through the map before the image
+    /// epochs (Ref-NPR; ARF has its own colour transfer).
+    pub init_field: bool,
+    /// L_color's targets from the map over each view's content render
+    /// (relu5-patch means) instead of the TCM-matched reference patches.
+    pub colour_targets: bool,
+    /// Keep L_color (with the first guides' targets) in the smooth content
+    /// update, which otherwise has no colour term (paper, code).
+    pub in_smooth_update: bool,
+    /// Bins per colour axis of the fitted offsets.
+    pub bins: usize,
+    /// Width (colour units, [0, 1] per channel) of the Gaussian that mixes nearby bins.
+    pub sigma: f32,
+    /// Pixels' worth of "no change" mixed into every colour's mean offset:
+    /// colours with fewer nearby reference pixels than this move less.
+    pub prior_pixels: f32,
+}
+
+impl Default for ColourMapConfig {
+    fn default() -> Self {
+        Self {
+            init_field: true,
+            colour_targets: true,
+            in_smooth_update: false,
+            bins: 16,
+            sigma: 0.08,
+            prior_pixels: 4.0,
+        }
+    }
+}
+
+impl ColourMapConfig {
+    pub fn validate(&self) -> anyhow::Result<()> {
+        anyhow::ensure!((2..=64).contains(&self.bins), "colour_map.bins must be in 2..=64, got {}", self.bins);
+        anyhow::ensure!(
+            self.sigma.is_finite() && self.sigma > 0.0,
+            "colour_map.sigma must be positive, got {}",
+            self.sigma
+        );
+        anyhow::ensure!(
+            self.prior_pixels.is_finite() && self.prior_pixels >= 0.0,
+            "colour_map.prior_pixels must be >= 0, got {}",
+            self.prior_pixels
+        );
+        Ok(())
+    }
+}
+
+/// A map from photo colour to painted colour, tabulated at bin centres and
+/// interpolated trilinearly between them.
+#[derive(Debug, Clone)]
+pub struct ColourMap {
+    bins: usize,
+    /// Offset (painted - photo) at each bin centre, `[r][g][b]` row-major.
+    offsets: Vec<[f32; 3]>,
+    /// Reference pixels the map was fitted on.
+    pub pixels: usize,
+}
+
+fn bin_of(c: f32, bins: usize) -> usize {
+    ((c.clamp(0.0, 1.0) * bins as f32) as usize).min(bins - 1)
+}
+
+impl ColourMap {
+    /// Fits the map on pixel-aligned (content render, painted reference)
+    /// pairs, over the pixels where `is_scene` holds for the content colour.
+    pub fn fit(pairs: &[(&Image, &Image)], cfg: &ColourMapConfig, is_scene: impl Fn([f32; 3]) -> bool) -> Self {
+        let b = cfg.bins;
+        // Per bin: summed offsets and pixel count.
+        let mut sums = vec![[0.0f64; 3]; b * b * b];
+        let mut counts = vec![0.0f64; b * b * b];
+        let mut pixels = 0;
+        for (content, style) in pairs {
+            assert_eq!(content.rgb.len(), style.rgb.len(), "a reference and its content render differ in size");
+            for (c, s) in content.rgb.chunks_exact(3).zip(style.rgb.chunks_exact(3)) {
+                let c = [c[0], c[1], c[2]];
+                if !is_scene(c) {
+                    continue;
+                }
+                let i = (bin_of(c[0], b) * b + bin_of(c[1], b)) * b + bin_of(c[2], b);
+                (0..3).for_each(|k| sums[i][k] += f64::from(s[k] - c[k]));
+                counts[i] += 1.0;
+                pixels += 1;
+            }
+        }
+        let filled: Vec<usize> = (0..counts.len()).filter(|&i| counts[i] > 0.0).collect();
+        let centre = |i: usize| {
+            let (r, g, bl) = (i / (b * b), (i / b) % b, i % b);
+            [r, g, bl].map(|x| (x as f32 + 0.5) / b as f32)
+        };
+        let two_var = 2.0 * cfg.sigma * cfg.sigma;
+        let offsets = (0..b * b * b)
+            .map(|at| {
+                let p = centre(at);
+                let (mut sum, mut weight) = ([0.0f64; 3], f64::from(cfg.prior_pixels));
+                for &i in &filled {
+                    let q = centre(i);
+                    let d2: f32 = (0..3).map(|k| (p[k] - q[k]).powi(2)).sum();
+                    let w = f64::from((-d2 / two_var).exp());
+                    (0..3).for_each(|k| sum[k] += w * sums[i][k]);
+                    weight += w * counts[i];
+                }
+                match weight > 0.0 {
+                    true => sum.map(|s| (s / weight) as f32),
+                    false => [0.0; 3],
+                }
+            })
+            .collect();
+        ColourMap { bins: b, offsets, pixels }
+    }
+
+    /// The painted colour of photo colour `c` (clamped to [0, 1]).
+    pub fn apply(&self, c: [f32; 3]) -> [f32; 3] {
+        let b = self.bins;
+        // Trilinear between bin centres (clamped at the outer half bins).
+        let pos = c.map(|x| (x.clamp(0.0, 1.0) * b as f32 - 0.5).clamp(0.0, (b - 1) as f32));
+        let lo = pos.map(|x| (x.floor() as usize).min(b - 2));
+        let t: [f32; 3] = std::array::from_fn(|k| pos[k] - lo[k] as f32);
+        let mut off = [0.0f32; 3];
+        for corner in 0..8 {
+            let idx: [usize; 3] = std::array::from_fn(|k| lo[k] + ((corner >> (2 - k)) & 1));
+            let w: f32 = (0..3).map(|k| if (corner >> (2 - k)) & 1 == 1 { t[k] } else { 1.0 - t[k] }).product();
+            let o = self.offsets[(idx[0] * b + idx[1]) * b + idx[2]];
+            (0..3).for_each(|k| off[k] += w * o[k]);
+        }
+        std::array::from_fn(|k| (c[k] + off[k]).clamp(0.0, 1.0))
+    }
+
+    /// The map applied to every pixel of an image that `is_scene` accepts.
+    pub fn apply_image(&self, img: &Image, is_scene: impl Fn([f32; 3]) -> bool) -> Image {
+        let rgb = img
+            .rgb
+            .chunks_exact(3)
+            .flat_map(|p| {
+                let c = [p[0], p[1], p[2]];
+                if is_scene(c) { self.apply(c) } else { c }
+            })
+            .collect();
+        Image::new(img.width, img.height, rgb)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn image(colours: &[[f32; 3]]) -> Image {
+        Image::new(colours.len(), 1, colours.iter().flatten().copied().collect())
+    }
+
+    #[test]
+    fn a_recolouring_is_carried_to_the_same_colours_and_unseen_colours_stay() {
+        // Yellow became blue, grey became teal, 50 pixels each.
+        let (yellow, grey, red) = ([0.9, 0.75, 0.1], [0.4, 0.4, 0.4], [0.8, 0.1, 0.1]);
+        let (blue, teal) = ([0.1, 0.3, 0.9], [0.2, 0.5, 0.5]);
+        let content = image(&[&[yellow; 50][..], &[grey; 50], &[[1.0; 3]; 20]].concat());
+        let style = image(&[&[blue; 50][..], &[teal; 50], &[[1.0; 3]; 20]].concat());
+        let cfg = ColourMapConfig::default();
+        let map = ColourMap::fit(&[(&content, &style)], &cfg, |c| c != [1.0; 3]);
+        assert_eq!(map.pixels, 100);
+        let close = |a: [f32; 3], b: [f32; 3], tol: f32| a.iter().zip(b).all(|(x, y)| (x - y).abs() < tol);
+        assert!(close(map.apply(yellow), blue, 0.1), "yellow -> {:?}", map.apply(yellow));
+        assert!(close(map.apply(grey), teal, 0.1), "grey -> {:?}", map.apply(grey));
+        // A slightly different yellow goes the same way; red was never painted and stays.
+        assert!(close(map.apply([0.85, 0.72, 0.15]), blue, 0.15), "{:?}", map.apply([0.85, 0.72, 0.15]));
+        assert!(close(map.apply(red), red, 0.02), "red -> {:?}", map.apply(red));
+    }
+
+    #[test]
+    fn an_identity_reference_maps_every_colour_to_itself() {
+        let colours: Vec<[f32; 3]> = (0..200).map(|i| [(i % 7) as f32 / 7.0, (i % 11) as f32 / 11.0, 0.3]).collect();
+        let img = image(&colours);
+        let map = ColourMap::fit(&[(&img, &img)], &ColourMapConfig::default(), |_| true);
+        for c in &colours {
+            assert_eq!(map.apply(*c), *c);
+        }
+    }
+}
