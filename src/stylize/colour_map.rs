@@ -29,6 +29,10 @@ pub struct ColourMapConfig {
     /// Keep L_color (with the first guides' targets) in the smooth content
     /// update, which otherwise has no colour term (paper, code).
     pub in_smooth_update: bool,
+    /// The content term's fixed features are of each view's content render
+    /// through the map (the content's structure in the reference's colours)
+    /// instead of the render itself, which pulls colours back to the photo's.
+    pub mapped_content: bool,
     /// Bins per colour axis of the fitted offsets.
     pub bins: usize,
     /// Width (colour units, [0, 1] per channel) of the Gaussian that mixes nearby bins.
@@ -44,6 +48,7 @@ impl Default for ColourMapConfig {
             init_field: true,
             colour_targets: true,
             in_smooth_update: false,
+            mapped_content: false,
             bins: 16,
             sigma: 0.08,
             prior_pixels: 4.0,

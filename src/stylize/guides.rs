@@ -23,7 +23,7 @@ use crate::vgg::VggLayer;
 pub(crate) fn guidance(
     st: &mut StyleStep,
     styles: &[Image],
-    keep_content: bool,
+    keep_content: Option<Content>,
     colour: Option<ColourSource>,
     progress: &dyn Progress,
 ) -> Result<(Guidance, f32)> {
@@ -52,11 +52,21 @@ pub(crate) enum ColourSource<'m> {
     Mapped(&'m ColourMap),
 }
 
+/// What the content term's fixed features are taken of.
+#[derive(Clone, Copy)]
+pub(crate) enum Content<'m> {
+    /// The content render (the paper).
+    Render,
+    /// The content render through the colour map: the content's structure
+    /// in the reference's colours, so the term no longer pulls them back.
+    Mapped(&'m ColourMap),
+}
+
 /// Content renders, features, TCM matches and colour targets of every view.
 pub(crate) fn guides(
     st: &StyleStep,
     template: Option<&Template>,
-    keep_content: bool,
+    keep_content: Option<Content>,
     colour: Option<ColourSource>,
     progress: &dyn Progress,
 ) -> Result<(Vec<ViewGuide>, f32)> {
@@ -96,11 +106,17 @@ pub(crate) fn guides(
             _ => None,
         };
         matched += colour.as_ref().map_or(0.0, |c| c.matched_fraction / n as f32);
-        let content = if keep_content {
-            raw.into_iter().map(|features| StoredFeatures::store(features, half_content)).collect()
-        } else {
-            Vec::new()
+        let content_features = match keep_content {
+            None => Vec::new(),
+            Some(Content::Render) => raw,
+            Some(Content::Mapped(map)) => {
+                let background = st.background();
+                let mapped = map.apply_image(&content, |c| !is_background(&c, background));
+                tcm::image_features(&st.vgg, &mapped, &st.ad, &blocks, false)?.0
+            }
         };
+        let content =
+            content_features.into_iter().map(|features| StoredFeatures::store(features, half_content)).collect();
         out.push(ViewGuide { content, matches, colour });
         progress.event(Event::Step { phase: Phase::Guides, done: v + 1, total: n, message: String::new() });
     }

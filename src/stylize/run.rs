@@ -23,7 +23,7 @@ use crate::scene::data::Dataset;
 use crate::stylize::colour_map::ColourMap;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::config::StylizeConfig;
-use crate::stylize::guides::{self, ColourSource};
+use crate::stylize::guides::{self, ColourSource, Content};
 use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::step::{Guidance, StyleStep};
 use crate::stylize::styles::{arf_colour_transfer, is_background, read_styles, style_colour_stats};
@@ -246,7 +246,7 @@ impl<'a> Stylization<'a> {
     /// on their content renders from the refit field.
     fn fit_colour_map(&mut self, styles: &[Image], progress: &dyn Progress) {
         let cfg = &self.job.config.colour_map;
-        if self.job.method != Method::RefNpr || !(cfg.init_field || cfg.colour_targets) {
+        if self.job.method != Method::RefNpr || !(cfg.init_field || cfg.colour_targets || cfg.mapped_content) {
             return;
         }
         let contents: Vec<Image> = (0..styles.len()).map(|r| self.step.render_reference(r)).collect();
@@ -277,7 +277,11 @@ impl<'a> Stylization<'a> {
         progress: &dyn Progress,
     ) -> Result<(Guidance, f32)> {
         let views = self.step.dataset().train.len();
-        let keep = keeps_content(self.job);
+        let keep =
+            keeps_content(self.job).then_some(match (&self.colour_map, self.job.config.colour_map.mapped_content) {
+                (Some(map), true) => Content::Mapped(map),
+                _ => Content::Render,
+            });
         let source = colour.then_some(match (&self.colour_map, self.job.config.colour_map.colour_targets) {
             (Some(map), true) => ColourSource::Mapped(map),
             _ => ColourSource::Matched,
@@ -435,7 +439,7 @@ impl<'a> Stylization<'a> {
         };
         let m = transfer::measure(|| -> Result<_> {
             let t = guides::template(&self.step, styles)?;
-            Ok((guides::guides(&self.step, Some(&t), false, None, progress)?.0, t))
+            Ok((guides::guides(&self.step, Some(&t), None, None, progress)?.0, t))
         });
         let (mut guides, t) = m.value?;
         if self.job.config.colour_map.in_smooth_update {
