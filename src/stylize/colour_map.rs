@@ -12,66 +12,9 @@
 //! applied to each view's content render it gives L_color targets that do
 //! not depend on which reference patch a view happens to match.
 
-use serde::{Deserialize, Serialize};
-
+use crate::stylize::config::ColourMapConfig;
+use crate::stylize::styles::is_background;
 use crate::util::image::Image;
-
-/// `[colour_map]` of the stylize config.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct ColourMapConfig {
-    /// Recolour the refit field's colours through the map before the image
-    /// epochs (Ref-NPR; ARF has its own colour transfer).
-    pub init_field: bool,
-    /// L_color's targets from the map over each view's content render
-    /// (relu5-patch means) instead of the TCM-matched reference patches.
-    pub colour_targets: bool,
-    /// Keep L_color (with the first guides' targets) in the smooth content
-    /// update, which otherwise has no colour term (paper, code).
-    pub in_smooth_update: bool,
-    /// The content term's fixed features are of each view's content render
-    /// through the map (the content's structure in the reference's colours)
-    /// instead of the render itself, which pulls colours back to the photo's.
-    pub mapped_content: bool,
-    /// Bins per colour axis of the fitted offsets.
-    pub bins: usize,
-    /// Width (colour units, [0, 1] per channel) of the Gaussian that mixes nearby bins.
-    pub sigma: f32,
-    /// Pixels' worth of "no change" mixed into every colour's mean offset:
-    /// colours with fewer nearby reference pixels than this move less.
-    pub prior_pixels: f32,
-}
-
-impl Default for ColourMapConfig {
-    fn default() -> Self {
-        Self {
-            init_field: true,
-            colour_targets: true,
-            in_smooth_update: false,
-            mapped_content: false,
-            bins: 16,
-            sigma: 0.08,
-            prior_pixels: 4.0,
-        }
-    }
-}
-
-impl ColourMapConfig {
-    pub fn validate(&self) -> anyhow::Result<()> {
-        anyhow::ensure!((2..=64).contains(&self.bins), "colour_map.bins must be in 2..=64, got {}", self.bins);
-        anyhow::ensure!(
-            self.sigma.is_finite() && self.sigma > 0.0,
-            "colour_map.sigma must be positive, got {}",
-            self.sigma
-        );
-        anyhow::ensure!(
-            self.prior_pixels.is_finite() && self.prior_pixels >= 0.0,
-            "colour_map.prior_pixels must be >= 0, got {}",
-            self.prior_pixels
-        );
-        Ok(())
-    }
-}
 
 /// A map from photo colour to painted colour, tabulated at bin centres and
 /// interpolated trilinearly between them.
@@ -80,6 +23,9 @@ pub struct ColourMap {
     bins: usize,
     /// Offset (painted - photo) at each bin centre, `[r][g][b]` row-major.
     offsets: Vec<[f32; 3]>,
+    /// Pixels of this colour (`styles::is_background`) are not the scene:
+    /// neither fitted nor mapped.
+    background: [f32; 3],
     /// Reference pixels the map was fitted on.
     pub pixels: usize,
 }
@@ -90,8 +36,8 @@ fn bin_of(c: f32, bins: usize) -> usize {
 
 impl ColourMap {
     /// Fits the map on pixel-aligned (content render, painted reference)
-    /// pairs, over the pixels where `is_scene` holds for the content colour.
-    pub fn fit(pairs: &[(&Image, &Image)], cfg: &ColourMapConfig, is_scene: impl Fn([f32; 3]) -> bool) -> Self {
+    /// pairs, over the pixels whose content colour is not the `background`.
+    pub fn fit(pairs: &[(&Image, &Image)], cfg: &ColourMapConfig, background: [f32; 3]) -> Self {
         let b = cfg.bins;
         // Per bin: summed offsets and pixel count.
         let mut sums = vec![[0.0f64; 3]; b * b * b];
@@ -101,7 +47,7 @@ impl ColourMap {
             assert_eq!(content.rgb.len(), style.rgb.len(), "a reference and its content render differ in size");
             for (c, s) in content.rgb.chunks_exact(3).zip(style.rgb.chunks_exact(3)) {
                 let c = [c[0], c[1], c[2]];
-                if !is_scene(c) {
+                if is_background(&c, background) {
                     continue;
                 }
                 let i = (bin_of(c[0], b) * b + bin_of(c[1], b)) * b + bin_of(c[2], b);
@@ -133,7 +79,7 @@ impl ColourMap {
                 }
             })
             .collect();
-        ColourMap { bins: b, offsets, pixels }
+        ColourMap { bins: b, offsets, background, pixels }
     }
 
     /// The painted colour of photo colour `c` (clamped to [0, 1]).
@@ -153,14 +99,14 @@ impl ColourMap {
         std::array::from_fn(|k| (c[k] + off[k]).clamp(0.0, 1.0))
     }
 
-    /// The map applied to every pixel of an image that `is_scene` accepts.
-    pub fn apply_image(&self, img: &Image, is_scene: impl Fn([f32; 3]) -> bool) -> Image {
+    /// The map applied to every pixel of an image but the background's.
+    pub fn apply_image(&self, img: &Image) -> Image {
         let rgb = img
             .rgb
             .chunks_exact(3)
             .flat_map(|p| {
                 let c = [p[0], p[1], p[2]];
-                if is_scene(c) { self.apply(c) } else { c }
+                if is_background(&c, self.background) { c } else { self.apply(c) }
             })
             .collect();
         Image::new(img.width, img.height, rgb)
@@ -183,7 +129,7 @@ mod tests {
         let content = image(&[&[yellow; 50][..], &[grey; 50], &[[1.0; 3]; 20]].concat());
         let style = image(&[&[blue; 50][..], &[teal; 50], &[[1.0; 3]; 20]].concat());
         let cfg = ColourMapConfig::default();
-        let map = ColourMap::fit(&[(&content, &style)], &cfg, |c| c != [1.0; 3]);
+        let map = ColourMap::fit(&[(&content, &style)], &cfg, [1.0; 3]);
         assert_eq!(map.pixels, 100);
         let close = |a: [f32; 3], b: [f32; 3], tol: f32| a.iter().zip(b).all(|(x, y)| (x - y).abs() < tol);
         assert!(close(map.apply(yellow), blue, 0.1), "yellow -> {:?}", map.apply(yellow));
@@ -197,7 +143,7 @@ mod tests {
     fn an_identity_reference_maps_every_colour_to_itself() {
         let colours: Vec<[f32; 3]> = (0..200).map(|i| [(i % 7) as f32 / 7.0, (i % 11) as f32 / 11.0, 0.3]).collect();
         let img = image(&colours);
-        let map = ColourMap::fit(&[(&img, &img)], &ColourMapConfig::default(), |_| true);
+        let map = ColourMap::fit(&[(&img, &img)], &ColourMapConfig::default(), [1.0; 3]);
         for c in &colours {
             assert_eq!(map.apply(*c), *c);
         }

@@ -9,7 +9,6 @@ use std::path::Path;
 use crate::field::march::ColourCorners;
 use crate::field::optim::RmsStart;
 use crate::reference::r3::RegisterParams;
-use crate::stylize::colour_map::ColourMapConfig;
 use crate::util::config;
 
 /// How the SH learning rate moves over a stylization.
@@ -273,6 +272,59 @@ impl Default for ArfConfig {
             post_transfer: false,
             half_resolution: false,
         }
+    }
+}
+
+/// `[colour_map]` of the stylize config.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ColourMapConfig {
+    /// Recolour the refit field's colours through the map before the image
+    /// epochs (Ref-NPR; ARF has its own colour transfer).
+    pub init_field: bool,
+    /// L_color's targets from the map over each view's content render
+    /// (relu5-patch means) instead of the TCM-matched reference patches.
+    pub colour_targets: bool,
+    /// Keep L_color (with the first guides' targets) in the smooth content
+    /// update, which otherwise has no colour term (paper, code).
+    pub in_smooth_update: bool,
+    /// The content term's fixed features are of each view's content render
+    /// through the map (the content's structure in the reference's colours)
+    /// instead of the render itself, which pulls colours back to the photo's.
+    pub mapped_content: bool,
+    /// Bins per colour axis of the fitted offsets.
+    pub bins: usize,
+    /// Width (colour units, [0, 1] per channel) of the Gaussian that mixes nearby bins.
+    pub sigma: f32,
+    /// Pixels' worth of "no change" mixed into every colour's mean offset:
+    /// colours with fewer nearby reference pixels than this move less.
+    pub prior_pixels: f32,
+}
+
+impl Default for ColourMapConfig {
+    fn default() -> Self {
+        Self {
+            init_field: true,
+            colour_targets: true,
+            in_smooth_update: false,
+            mapped_content: false,
+            bins: 16,
+            sigma: 0.08,
+            prior_pixels: 4.0,
+        }
+    }
+}
+
+impl ColourMapConfig {
+    pub fn validate(&self) -> Result<()> {
+        ensure!((2..=64).contains(&self.bins), "colour_map.bins must be in 2..=64, got {}", self.bins);
+        ensure!(self.sigma.is_finite() && self.sigma > 0.0, "colour_map.sigma must be positive, got {}", self.sigma);
+        ensure!(
+            self.prior_pixels.is_finite() && self.prior_pixels >= 0.0,
+            "colour_map.prior_pixels must be >= 0, got {}",
+            self.prior_pixels
+        );
+        Ok(())
     }
 }
 

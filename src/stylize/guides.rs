@@ -10,7 +10,6 @@ use crate::stylize::Method;
 use crate::stylize::colour_map::ColourMap;
 use crate::stylize::config::WhiteOn;
 use crate::stylize::step::{Guidance, StyleStep, ViewGuide};
-use crate::stylize::styles::is_background;
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, StoredFeatures, Template};
 use crate::util::image::Image;
 use crate::util::progress::{Event, Phase, Progress};
@@ -92,16 +91,19 @@ pub(crate) fn guides(
         let matched_colour = matches!(colour, Some(ColourSource::Matched));
         let (raw, colour_desc) = tcm::image_features(&st.vgg, vgg_input, &st.ad, &blocks, matched_colour)?;
         let matches = template.map(|t| t.matches(&raw, st.cfg().search_chunk)).unwrap_or_default();
+        // The content render through the colour map, once, for whichever of the two uses it.
+        let mapped = match (keep_content, colour) {
+            (Some(Content::Mapped(map)), _) | (_, Some(ColourSource::Mapped(map))) => Some(map.apply_image(&content)),
+            _ => None,
+        };
         let l = &st.cfg().loss;
         let white = (l.colour_white_on == WhiteOn::Content).then_some(l.colour_white);
         let colour = match (template, colour_desc, colour) {
             (Some(t), Some(d), _) => {
                 Some(t.colour_targets(d, &content, l.colour_max_distance, white, st.cfg().search_chunk))
             }
-            (Some(_), None, Some(ColourSource::Mapped(map))) => {
-                let background = st.background();
-                let mapped = map.apply_image(&content, |c| !is_background(&c, background));
-                Some(ColourTargets::from_mapped(&content, &mapped, white, &st.device))
+            (Some(_), None, Some(ColourSource::Mapped(_))) => {
+                mapped.as_ref().map(|m| ColourTargets::from_mapped(&content, m, white, &st.device))
             }
             _ => None,
         };
@@ -109,10 +111,9 @@ pub(crate) fn guides(
         let content_features = match keep_content {
             None => Vec::new(),
             Some(Content::Render) => raw,
-            Some(Content::Mapped(map)) => {
-                let background = st.background();
-                let mapped = map.apply_image(&content, |c| !is_background(&c, background));
-                tcm::image_features(&st.vgg, &mapped, &st.ad, &blocks, false)?.0
+            Some(Content::Mapped(_)) => {
+                let mapped = mapped.as_ref().expect("mapped above for Content::Mapped");
+                tcm::image_features(&st.vgg, mapped, &st.ad, &blocks, false)?.0
             }
         };
         let content =

@@ -251,8 +251,7 @@ impl<'a> Stylization<'a> {
         }
         let contents: Vec<Image> = (0..styles.len()).map(|r| self.step.render_reference(r)).collect();
         let pairs: Vec<(&Image, &Image)> = contents.iter().zip(styles).collect();
-        let background = self.step.background();
-        let map = ColourMap::fit(&pairs, cfg, |c| !is_background(&c, background));
+        let map = ColourMap::fit(&pairs, cfg, self.step.background());
         progress.event(Event::Detail(format!("colour map fitted on {} reference pixels", map.pixels)));
         self.colour_map = Some(map);
     }

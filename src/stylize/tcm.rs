@@ -189,14 +189,11 @@ impl Template {
     ) -> ColourTargets {
         let device = colour_descriptors.device();
         let (idx, sim) = nearest_by_dot(colour_descriptors, self.colour_keys.clone(), chunk);
-        let own = to_vec(patch_means(content.tensor(&device), COLOUR_PATCH));
+        let background = white_patches(content, white, &device);
         let mask: Vec<f32> = sim
             .iter()
-            .enumerate()
-            .map(|(i, &s)| {
-                let background = white.is_some_and(|w| own[i * 3..i * 3 + 3].iter().all(|&v| v > w));
-                if 1.0 - s <= max_distance && !background { 1.0 } else { 0.0 }
-            })
+            .zip(&background)
+            .map(|(&s, &background)| if 1.0 - s <= max_distance && !background { 1.0 } else { 0.0 })
             .collect();
         let n = mask.len();
         let matched = mask.iter().filter(|&&m| m > 0.0).count();
@@ -222,6 +219,13 @@ pub struct ColourTargets {
     pub matched_fraction: f32,
 }
 
+/// Per colour patch of `content`: whether its mean is near white (above
+/// `white` in every channel: background, no colour loss there).
+fn white_patches(content: &Image, white: Option<f32>, device: &Device) -> Vec<bool> {
+    let own = to_vec(patch_means(content.tensor(device), COLOUR_PATCH));
+    own.chunks_exact(3).map(|p| white.is_some_and(|w| p.iter().all(|&v| v > w))).collect()
+}
+
 /// One view's colour targets as written to `colour_targets.json`: row-major
 /// over the relu5 grid (one position per 16x16 pixels), `null` where the
 /// position is not supervised.
@@ -242,12 +246,9 @@ impl ColourTargets {
     /// supervised where the content patch is not background (`white`).
     /// No template position is their source (`source` is empty).
     pub fn from_mapped(content: &Image, mapped: &Image, white: Option<f32>, device: &Device) -> ColourTargets {
-        let own = to_vec(patch_means(content.tensor(device), COLOUR_PATCH));
         let target = patch_means(mapped.tensor(device), COLOUR_PATCH);
-        let mask: Vec<f32> = own
-            .chunks_exact(3)
-            .map(|p| if white.is_some_and(|w| p.iter().all(|&v| v > w)) { 0.0 } else { 1.0 })
-            .collect();
+        let mask: Vec<f32> =
+            white_patches(content, white, device).into_iter().map(|b| if b { 0.0 } else { 1.0 }).collect();
         let n = mask.len();
         let matched = mask.iter().filter(|&&m| m > 0.0).count();
         ColourTargets {
