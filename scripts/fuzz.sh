@@ -1,7 +1,6 @@
 #!/usr/bin/env bash
 # A long fuzz run of one target: scripts/fuzz.sh TARGET SECONDS [SEED]
-# Targets: npy transforms reference_toml data_config train_config
-# stylize_config checkpoint registration image cli (see `refnpr fuzz --help`).
+# Targets: `refnpr fuzz --help` lists them (every parser of outside input, and cli).
 # Prints a JSON report (inputs tried, crashes grouped by place, slowest case,
 # peak memory); exits non-zero on any panic (the input is saved under
 # $TMPDIR/refnpr-fuzz-crashes) or hang (status 3).

@@ -63,3 +63,11 @@ pub fn sparse_degree2_grid(max_density: f32) -> (RadianceGrid, Vec<f32>, Vec<f32
 pub fn test_camera(size: u32) -> Camera {
     Camera::new(Intrinsics::from_fov_x(size, size, 0.8), look_at(Vec3::new(0.3, 0.5, 2.6), Vec3::ZERO, Vec3::Y))
 }
+
+/// A fresh, empty folder under the system's temp dir, unique to this process and `name`.
+pub fn temp_dir(name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("refnpr-test-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    dir
+}

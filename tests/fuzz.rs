@@ -26,7 +26,20 @@ fn fuzz_briefly(name: &str, cases: u64) {
 
 #[test]
 fn fuzz_text_parsers() {
-    for name in ["npy", "reference_toml", "data_config", "train_config", "stylize_config"] {
+    for name in [
+        "npy",
+        "reference_toml",
+        "data_config",
+        "train_config",
+        "stylize_config",
+        "transforms_json",
+        "colmap_cameras_bin",
+        "colmap_images_bin",
+        "colmap_points3d_bin",
+        "colmap_cameras_txt",
+        "colmap_images_txt",
+        "colmap_points3d_txt",
+    ] {
         fuzz_briefly(name, 20_000);
     }
 }

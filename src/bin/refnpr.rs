@@ -20,7 +20,7 @@ use refnpr::stylize::config::StylizeConfig;
 use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::{Method, StylizeJob};
 use refnpr::tools::info::SystemInfo;
-use refnpr::tools::{bench, demo, fuzz, paint};
+use refnpr::tools::{bench, capture, demo, fuzz, paint};
 use refnpr::util::{config, files, image, profile};
 use refnpr::{BackendKind, Console, Progress};
 
@@ -255,7 +255,7 @@ enum Command {
         json: bool,
     },
     /// Feeds a parser of outside input (or the command line itself) mutated real files
-    /// for a while: no input may panic or hang. Targets: npy, transforms, reference_toml,
+    /// for a while: no input may panic or hang. Targets: npy, transforms, transforms_json, colmap_*, reference_toml,
     /// data_config, train_config, stylize_config, checkpoint, registration, image, cli.
     Fuzz {
         target: String,
@@ -277,6 +277,32 @@ enum Command {
         /// Real scenes to add to the seed inputs, when the folder exists.
         #[arg(long, default_value = "../shared/data")]
         shared_data: PathBuf,
+    },
+    /// A dataset from a folder of photos, through COLMAP (installed separately:
+    /// `apt-get install colmap`): photos downsized, features, matching, mapping,
+    /// undistortion; writes OUT/images/ and OUT/sparse/ for `train --data OUT`.
+    Capture {
+        /// The folder of photos (PNG or JPEG, 20-100 of one scene).
+        photos: PathBuf,
+        /// The dataset folder to write (COLMAP's log: OUT/colmap.log).
+        #[arg(long)]
+        out: PathBuf,
+        /// Photos are downsized to this long side first (pixels).
+        #[arg(long, default_value_t = 800)]
+        max_side: u32,
+        /// COLMAP's camera model (SIMPLE_RADIAL, RADIAL, OPENCV, PINHOLE, ...).
+        #[arg(long, default_value = "SIMPLE_RADIAL")]
+        camera_model: String,
+        /// The photos come from several cameras or zoom settings (one camera each).
+        #[arg(long)]
+        several_cameras: bool,
+        /// The COLMAP executable.
+        #[arg(long, default_value = "colmap")]
+        colmap: PathBuf,
+        /// A dataset of the same photos with known poses: print the recovered
+        /// poses' error against it (views matched by file name).
+        #[arg(long)]
+        truth: Option<PathBuf>,
     },
     /// Writes the built-in procedural scene (Blender layout, with depth, ids and a stylized twin).
     Scene {
@@ -418,6 +444,26 @@ fn run() -> Result<()> {
         Command::Fuzz { target, seconds, cases, case_seconds, seed, memory_mb, shared_data } => {
             let limits = fuzz::Limits { max_cases: cases, max_seconds: seconds, case_seconds, seed };
             run_fuzz(&target, &limits, memory_mb, &shared_data)
+        }
+        Command::Capture { photos, out, max_side, camera_model, several_cameras, colmap, truth } => {
+            let opts = capture::CaptureOptions { max_side, camera_model, single_camera: !several_cameras, colmap };
+            let r = capture::capture(&photos, &out, &opts, &progress)?;
+            println!(
+                "registered {} of {} photos ({} points, {}x{}) in {:.0} s; wrote {} (train it: refnpr train --data {} --out RUN)",
+                r.registered,
+                r.photos,
+                r.points,
+                r.size.0,
+                r.size.1,
+                r.seconds,
+                out.display(),
+                out.display()
+            );
+            if let Some(truth) = truth {
+                let e = capture::compare_poses(&out, &truth)?;
+                println!("{}", serde_json::to_string(&e)?);
+            }
+            Ok(())
         }
         Command::Scene { out, seed, size } => {
             procedural::write_scene(&out, &procedural::SceneOptions { seed, size, ..Default::default() })?;
@@ -812,7 +858,7 @@ fn run_train(
     progress: &dyn Progress,
 ) -> Result<()> {
     let kind = data::detect_kind(dir)?;
-    let base = TrainConfig::for_kind(kind);
+    let base = TrainConfig::for_dir(dir)?;
     let mut cfg = match config {
         Some(p) => TrainConfig::from_file(p, &base)?,
         None => base,
@@ -824,6 +870,9 @@ fn run_train(
     let dataset = data::load(dir, &cfg.data)?;
     for w in &dataset.warnings {
         progress.warning(w.clone());
+    }
+    for n in &dataset.notes {
+        progress.info(n.clone());
     }
     let size = dataset.train[0].camera.intrinsics;
     progress.info(format!(

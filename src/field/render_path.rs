@@ -8,7 +8,7 @@ use anyhow::{Result, bail};
 
 use crate::field::checkpoint::Checkpoint;
 use crate::scene::camera::Camera;
-use crate::scene::data::{Dataset, DatasetKind};
+use crate::scene::data::Dataset;
 use crate::util::image::{self, Image};
 use crate::util::progress::{Event, Phase, Progress};
 
@@ -29,8 +29,8 @@ pub fn path_cameras(dataset: &Dataset, kind: PathKind, frames: usize) -> Result<
         PathKind::Test => dataset.test.iter().map(|v| v.camera).collect(),
         PathKind::Train => dataset.train.iter().map(|v| v.camera).collect(),
         PathKind::Spiral => {
-            if dataset.kind != DatasetKind::Llff {
-                bail!("the spiral path is for forward-facing (LLFF) scenes; use --path orbit");
+            if dataset.ndc.is_none() {
+                bail!("the spiral path is for forward-facing scenes; use --path orbit");
             }
             dataset.render_path(frames)
         }

@@ -22,7 +22,7 @@ use crate::reference::case::{ReferenceCase, ViewSpec};
 use crate::reference::r3::RegisterParams;
 use crate::reference::registration::{self, RegisterReport, RegistrationFile};
 use crate::scene::camera::Camera;
-use crate::scene::data::{self, Dataset, DatasetKind, LoadOptions, Split, procedural};
+use crate::scene::data::{self, Dataset, LoadOptions, Split, procedural};
 use crate::stylize::config::StylizeConfig;
 use crate::stylize::run::run_stylize;
 use crate::stylize::{Method, StepKind, StylizeJob, StylizeReport};
@@ -148,8 +148,7 @@ impl Scene {
     /// Loads a Blender, LLFF or NSVF folder with its kind's default loading options.
     pub fn load(dir: impl AsRef<Path>) -> Result<Scene> {
         let dir = dir.as_ref();
-        let kind = data::detect_kind(dir)?;
-        Scene::load_with(dir, &TrainConfig::for_kind(kind).data)
+        Scene::load_with(dir, &TrainConfig::for_dir(dir)?.data)
     }
 
     /// Loads a folder with these options (for example a `downscale`).
@@ -188,7 +187,7 @@ impl Scene {
     /// The training config this kind of scene starts from (`configs/*.toml`),
     /// with the options the scene was loaded with.
     pub fn default_config(&self) -> TrainConfig {
-        TrainConfig { data: self.options, ..TrainConfig::for_kind(self.dataset.kind) }
+        TrainConfig { data: self.options, ..TrainConfig::for_setup(self.dataset.kind, self.dataset.ndc.is_some()) }
     }
 
     /// Kind, views and image size.
@@ -339,7 +338,7 @@ impl Photo {
 }
 
 fn render_path_of(ck: &Checkpoint, dataset: &Dataset, frames: usize, out: &Path) -> Result<Gallery> {
-    let kind = if dataset.kind == DatasetKind::Llff { PathKind::Spiral } else { PathKind::Orbit };
+    let kind = if dataset.ndc.is_some() { PathKind::Spiral } else { PathKind::Orbit };
     let cams = render_path::path_cameras(dataset, kind, frames)?;
     let images = render_path::render_frames(ck, &cams, out, &Cells::default())?;
     let step = images.len().div_ceil(8).max(1);

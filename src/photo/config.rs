@@ -134,10 +134,31 @@ impl TrainConfig {
         RenderSettings { march: self.march, chunk: self.render_chunk }
     }
 
-    /// The built-in defaults for a dataset kind (the same values as `configs/<kind>.toml`).
+    /// The built-in defaults for a dataset kind (the same values as
+    /// `configs/<kind>.toml`); COLMAP and `transforms.json` captures take
+    /// Blender's (see [`TrainConfig::for_setup`] for forward-facing ones).
     pub fn for_kind(kind: DatasetKind) -> Self {
+        Self::for_setup(kind, kind == DatasetKind::Llff)
+    }
+
+    /// The defaults for a dataset folder: its kind, and for COLMAP and
+    /// `transforms.json` captures whether their cameras face forward
+    /// (`data::probe`, the poses alone read).
+    pub fn for_dir(dir: &Path) -> Result<Self> {
+        let (kind, forward) = crate::scene::data::probe(dir, Default::default())?;
+        Ok(Self::for_setup(kind, forward))
+    }
+
+    /// The defaults for a kind of dataset of either shape: a forward-facing
+    /// capture takes LLFF's grid and schedule (at the images' own size), one
+    /// around the scene Blender's.
+    pub fn for_setup(kind: DatasetKind, forward_facing: bool) -> Self {
         let mut c = Self::default();
         match kind {
+            DatasetKind::Colmap | DatasetKind::Transforms => {
+                c = Self::for_kind(if forward_facing { DatasetKind::Llff } else { DatasetKind::Blender });
+                c.data.downscale = 1;
+            }
             DatasetKind::Blender => {
                 c.grid.initial_res = [64; 3];
                 c.grid.upsample_steps = vec![250, 900];

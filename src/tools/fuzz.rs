@@ -27,7 +27,7 @@ use crate::reference::case::{ReferenceCase, read_style};
 use crate::reference::r3::{RegisterParams, ViewRegistration};
 use crate::reference::registration::{NamedRegistration, PhotoRun, ReferencePixels, RegistrationFile};
 use crate::scene::camera::{Camera, Intrinsics};
-use crate::scene::data::{self, DatasetKind, procedural};
+use crate::scene::data::{self, DatasetKind, colmap_model, procedural, transforms};
 use crate::stylize::config::StylizeConfig;
 use crate::util::backend::BackendKind;
 use crate::util::{files, npy};
@@ -343,6 +343,13 @@ pub const TARGETS: &[&str] = &[
     "nsvf_intrinsics",
     "nsvf_pose",
     "nsvf_bbox",
+    "colmap_cameras_bin",
+    "colmap_images_bin",
+    "colmap_points3d_bin",
+    "colmap_cameras_txt",
+    "colmap_images_txt",
+    "colmap_points3d_txt",
+    "transforms_json",
 ];
 
 /// Seeds and a check: what a target is made of.
@@ -364,6 +371,8 @@ pub fn target(name: &str, scratch: &Path, shared_data: Option<&Path>) -> Result<
             case_and_config_files(name, scratch, &real)?
         }
         "checkpoint" | "registration" | "image" => binary_files(name, scratch)?,
+        n if n.starts_with("colmap_") => colmap_files(n, scratch)?,
+        "transforms_json" => transforms_json(),
         other => bail!("no fuzz target '{other}' (targets: {}, cli)", TARGETS.join(", ")),
     };
     Ok(Target { name: name.to_string(), seeds, check })
@@ -501,6 +510,56 @@ fn binary_files(name: &str, scratch: &Path) -> Result<Seeded> {
         _ => unreachable!("not a binary files target: {name}"),
     };
     Ok(seeded)
+}
+
+/// A small COLMAP model (two cameras, two images, two points).
+fn tiny_colmap_model() -> colmap_model::Model {
+    let text_cams = "1 OPENCV 40 30 50 51 20 15 0.01 -0.002 0.001 0.0005\n2 SIMPLE_RADIAL 40 30 45 20 15 0.02\n";
+    let text_imgs = "1 1 0 0 0 0.5 -0.25 2 1 a.png\n10 20 3 30 40 4 50 60 -1\n2 0.7071 0 0.7071 0 0 0 1 2 b.png\n\n";
+    let text_pts = "3 0.1 0.2 0.3 255 0 0 0.5 1 0 2 0\n4 -1 2 -3 0 0 0 0.1 1 1\n";
+    let parse = |name: &str, text: &str| colmap_model::parse_file(name, text.as_bytes()).expect("a valid seed");
+    parse("cameras.txt", text_cams);
+    parse("images.txt", text_imgs);
+    parse("points3D.txt", text_pts);
+    colmap_model::Model::from_text(text_cams, text_imgs, text_pts).expect("a valid seed")
+}
+
+/// Seeds and checks of the COLMAP model files' targets: the text seeds as
+/// COLMAP writes them (comments, an image without keypoints), the binary
+/// seeds the same model written in binary.
+fn colmap_files(name: &str, scratch: &Path) -> Result<Seeded> {
+    let file = match name {
+        "colmap_cameras_bin" => "cameras.bin",
+        "colmap_images_bin" => "images.bin",
+        "colmap_points3d_bin" => "points3D.bin",
+        "colmap_cameras_txt" => "cameras.txt",
+        "colmap_images_txt" => "images.txt",
+        "colmap_points3d_txt" => "points3D.txt",
+        other => bail!("no fuzz target '{other}' (targets: {})", TARGETS.join(", ")),
+    };
+    let dir = scratch.join("colmap");
+    colmap_model::write_binary(&tiny_colmap_model(), &dir)?;
+    colmap_model::write_text(&tiny_colmap_model(), &dir)?;
+    let seeds = vec![std::fs::read(dir.join(file))?];
+    Ok((seeds, Box::new(move |b| drop(colmap_model::parse_file(file, b)))))
+}
+
+/// Seeds and check of nerfstudio's / instant-ngp's `transforms.json`.
+fn transforms_json() -> Seeded {
+    let seeds = [
+        r#"{"camera_model": "OPENCV", "fl_x": 50.5, "fl_y": 51, "cx": 20, "cy": 15, "w": 40, "h": 30, "k1": 0.01,
+        "k2": -0.002, "p1": 0.001, "p2": 0.0005, "applied_transform": [[0,1,0,0],[1,0,0,0],[0,0,-1,0]],
+        "frames": [{"file_path": "images/a.png", "mask_path": "masks/a.png",
+        "transform_matrix": [[1,0,0,0.5],[0,0,-1,-2],[0,1,0,0.3],[0,0,0,1]]},
+        {"file_path": "./images/b.png", "fl_x": 49, "transform_matrix": [[0,0,1,2],[1,0,0,0],[0,1,0,0.3],[0,0,0,1]]}],
+        "train_filenames": ["images/a.png"], "test_filenames": ["images/b.png"]}"#,
+        r#"{"camera_angle_x": 0.69, "aabb_scale": 16, "frames": [{"file_path": "x",
+        "transform_matrix": [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]}]}"#,
+    ];
+    (
+        seeds.iter().map(|s| s.as_bytes().to_vec()).collect(),
+        Box::new(|b| drop(transforms::parse_text(&String::from_utf8_lossy(b)))),
+    )
 }
 
 /// Writes `bytes` to `file`, then runs the parser that reads it.

@@ -25,6 +25,8 @@ pub enum Phase {
     ImageEpochs,
     /// Restylizations of `refnpr eval --robustness`.
     Robustness,
+    /// The stages of `refnpr capture` (photos, COLMAP's features, matches, mapping, undistortion).
+    Capture,
 }
 
 impl std::fmt::Display for Phase {
@@ -37,6 +39,7 @@ impl std::fmt::Display for Phase {
             Phase::Guides => "content features",
             Phase::ImageEpochs => "image epochs",
             Phase::Robustness => "robustness",
+            Phase::Capture => "capture",
         })
     }
 }

@@ -95,7 +95,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
             );
         }
     }
-    let [lo, hi] = bbox.unwrap_or([[-1.5; 3], [1.5; 3]]);
+    let [lo, hi] = opts.bbox.or(bbox).unwrap_or([[-1.5; 3], [1.5; 3]]);
     Ok(Dataset {
         kind: DatasetKind::Blender,
         root: dir.to_path_buf(),
@@ -108,5 +108,6 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         ndc: None,
         near_far: None,
         warnings: Vec::new(),
+        notes: Vec::new(),
     })
 }

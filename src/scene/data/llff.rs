@@ -35,7 +35,7 @@ fn list_images(dir: &Path) -> Result<Vec<PathBuf>> {
 /// else `images/` resized by f, else the most reduced `images_<n>/` with n
 /// dividing f, resized by f / n (the LLFF archives ship `images_8/` alone);
 /// with f = 1 and no `images/`, the first `images_<n>/` found (its own resolution).
-fn image_folder(dir: &Path, factor: u32) -> Result<(PathBuf, u32)> {
+pub(crate) fn image_folder(dir: &Path, factor: u32) -> Result<(PathBuf, u32)> {
     let exact = if factor > 1 { dir.join(format!("images_{factor}")) } else { dir.join("images") };
     if exact.is_dir() {
         return Ok((exact, 1));
@@ -144,10 +144,24 @@ fn read_poses(data: &[f64], n: usize, npy_path: &Path) -> Result<LlffPoses> {
     }
     let min_near = bounds.iter().map(|b| b.0).fold(f32::INFINITY, f32::min);
     let max_far = bounds.iter().map(|b| b.1).fold(0.0f32, f32::max);
+    let (poses, near_far) = normalise_forward(&poses, (min_near, max_far), npy_path)?;
+    Ok(LlffPoses { poses, hwf, near_far })
+}
+
+/// The NeRF / Plenoxels normalisation of a forward-facing capture: the
+/// scene scaled so the nearest depth bound sits at 4/3 (NDC's near plane is
+/// at 1), the poses re-expressed relative to their average pose; returns
+/// them and the rescaled (near, far).
+pub(crate) fn normalise_forward(
+    poses: &[Mat4],
+    (min_near, max_far): (f32, f32),
+    source: &Path,
+) -> Result<(Vec<Mat4>, (f32, f32))> {
     if min_near.is_nan() || min_near <= 0.0 {
-        bail!("{}: near bounds must be positive (found {min_near})", npy_path.display());
+        bail!("{}: near bounds must be positive (found {min_near})", source.display());
     }
     let scale = 1.0 / (min_near * 0.75);
+    let mut poses = poses.to_vec();
     for p in poses.iter_mut() {
         p.w_axis = (p.w_axis.truncate() * scale).extend(1.0);
     }
@@ -155,9 +169,9 @@ fn read_poses(data: &[f64], n: usize, npy_path: &Path) -> Result<LlffPoses> {
     let inv = avg.inverse();
     let poses: Vec<Mat4> = poses.iter().map(|p| inv * *p).collect();
     for (i, p) in poses.iter().enumerate() {
-        check_pose(p, npy_path, &format!("image {i}"))?;
+        check_pose(p, source, &format!("image {i}"))?;
     }
-    Ok(LlffPoses { poses, hwf, near_far: (min_near * scale, max_far * scale) })
+    Ok((poses, (min_near * scale, max_far * scale)))
 }
 
 /// The views: each image (in parallel) with its pose and a centred pinhole,
@@ -214,16 +228,39 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
             full_h
         );
     }
+    let is_test: Vec<bool> = (0..views.len()).map(|i| i % LLFF_HOLD == 0).collect();
+    let setup = Forward { kind: DatasetKind::Llff, root: dir, source: &npy_path, near_far: (near, far) };
+    Ok(forward_facing(setup, views, &is_test, opts))
+}
+
+/// A forward-facing capture whose poses `normalise_forward` has made.
+pub(crate) struct Forward<'a> {
+    pub kind: DatasetKind,
+    pub root: &'a Path,
+    /// The file named in warnings.
+    pub source: &'a Path,
+    /// The rescaled depth bounds.
+    pub near_far: (f32, f32),
+}
+
+/// The dataset of a forward-facing capture: rays warped to NDC (near plane
+/// 1, the first view's intrinsics), the grid's box what the rays reach,
+/// the views split by `is_test`.
+pub(crate) fn forward_facing(setup: Forward, views: Vec<View>, is_test: &[bool], opts: &LoadOptions) -> Dataset {
+    let intr = views[0].camera.intrinsics;
     let ndc = NdcParams { width: intr.width as f32, height: intr.height as f32, focal: intr.fx, near: 1.0 };
-    let (bbox_min, bbox_max, warning) = ndc_box(&views, &ndc, &npy_path);
+    let (mut bbox_min, mut bbox_max, warning) = ndc_box(&views, &ndc, setup.source);
+    if let Some([lo, hi]) = opts.bbox {
+        (bbox_min, bbox_max) = (Vec3::from(lo), Vec3::from(hi));
+    }
     let mut train = Vec::new();
     let mut test = Vec::new();
-    for (i, v) in views.into_iter().enumerate() {
-        if i % LLFF_HOLD == 0 { test.push(v) } else { train.push(v) }
+    for (v, &t) in views.into_iter().zip(is_test) {
+        if t { test.push(v) } else { train.push(v) }
     }
-    Ok(Dataset {
-        kind: DatasetKind::Llff,
-        root: dir.to_path_buf(),
+    Dataset {
+        kind: setup.kind,
+        root: setup.root.to_path_buf(),
         train,
         val: Vec::new(),
         test,
@@ -231,7 +268,8 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         bbox_min,
         bbox_max,
         ndc: Some(ndc),
-        near_far: Some((near, far)),
+        near_far: Some(setup.near_far),
         warnings: warning.into_iter().collect(),
-    })
+        notes: Vec::new(),
+    }
 }

@@ -1,9 +1,14 @@
 //! Posed-image datasets: one `Dataset` type and a loader per layout.
 
 pub(crate) mod blender;
+pub(crate) mod colmap;
+pub mod colmap_model;
 pub(crate) mod llff;
 pub(crate) mod nsvf;
+pub(crate) mod posed;
 pub mod procedural;
+pub mod transforms;
+pub mod undistort;
 
 use crate::scene::camera::{Camera, Intrinsics, NdcParams, Ray, pose_is_valid};
 use crate::util::input::InputError;
@@ -23,6 +28,23 @@ pub enum DatasetKind {
     Llff,
     /// NSVF / Tanks&Temples (`rgb/`, `pose/`, `intrinsics.txt`).
     Nsvf,
+    /// A COLMAP sparse model (`sparse/0/` or `sparse/`, binary or text) and `images/`.
+    Colmap,
+    /// One `transforms.json` as nerfstudio and instant-ngp write it.
+    Transforms,
+}
+
+/// Whether a capture looks at the scene from one side (rendered in NDC, as
+/// LLFF) or goes around it (a bounded box, as Blender); `auto` decides from
+/// the cameras' viewing directions (COLMAP and `transforms.json` captures;
+/// the research layouts have a fixed shape).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Shape {
+    #[default]
+    Auto,
+    ForwardFacing,
+    Around,
 }
 
 impl std::fmt::Display for DatasetKind {
@@ -42,11 +64,17 @@ pub struct LoadOptions {
     /// Integer downscale of the images (1 = as stored). For LLFF this picks
     /// `images_<factor>/` when it exists, else resizes `images/`.
     pub downscale: u32,
+    /// Forward-facing or around (COLMAP and `transforms.json` captures).
+    pub shape: Shape,
+    /// The box the grid covers, `[[xmin, ymin, zmin], [xmax, ymax, zmax]]`,
+    /// in the loaded scene's frame (the one `refnpr train` prints), instead
+    /// of the one the loader finds.
+    pub bbox: Option<[[f32; 3]; 2]>,
 }
 
 impl Default for LoadOptions {
     fn default() -> Self {
-        Self { background: [1.0, 1.0, 1.0], downscale: 1 }
+        Self { background: [1.0, 1.0, 1.0], downscale: 1, shape: Shape::Auto, bbox: None }
     }
 }
 
@@ -77,6 +105,9 @@ pub struct Dataset {
     pub near_far: Option<(f32, f32)>,
     /// What the loader noticed that may give a poor result (the caller reports them).
     pub warnings: Vec<String>,
+    /// What the loader decided from the data (the capture's shape, the
+    /// box, the split), for the caller to print.
+    pub notes: Vec<String>,
 }
 
 /// Which split of a dataset.
@@ -112,8 +143,8 @@ impl Dataset {
     pub fn render_path(&self, n: usize) -> Vec<Camera> {
         let intr = self.train[0].camera.intrinsics;
         let poses: Vec<Mat4> = self.train.iter().chain(&self.test).chain(&self.val).map(|v| v.camera.c2w).collect();
-        let path = match (self.kind, self.near_far) {
-            (DatasetKind::Llff, Some((near, far))) => crate::scene::camera::llff_spiral(&poses, near, far, n, 2.0, 0.5),
+        let path = match (self.ndc, self.near_far) {
+            (Some(_), Some((near, far))) => crate::scene::camera::llff_spiral(&poses, near, far, n, 2.0, 0.5),
             _ => {
                 let centre = (self.bbox_min + self.bbox_max) * 0.5;
                 let (mut radius, mut elev) = (0.0, 0.0);
@@ -146,10 +177,16 @@ pub fn detect_kind(dir: &Path) -> Result<DatasetKind> {
         Ok(DatasetKind::Llff)
     } else if dir.join("pose").is_dir() && dir.join("rgb").is_dir() {
         Ok(DatasetKind::Nsvf)
+    } else if dir.join("transforms.json").exists() {
+        Ok(DatasetKind::Transforms)
+    } else if colmap_model::find_model(dir).is_some() {
+        Ok(DatasetKind::Colmap)
     } else {
         let message = format!(
             "{} is not a dataset folder: expected transforms_train.json (Blender), \
-             poses_bounds.npy (LLFF) or rgb/ + pose/ + intrinsics.txt (NSVF / Tanks&Temples)",
+             poses_bounds.npy (LLFF), rgb/ + pose/ + intrinsics.txt (NSVF / Tanks&Temples), \
+             transforms.json (nerfstudio / instant-ngp) or a COLMAP model in sparse/0/ or sparse/ \
+             (from a folder of photos: refnpr capture PHOTOS --out DATA)",
             dir.display()
         );
         Err(InputError::NotADataset { path: dir.into(), message }.into())
@@ -165,6 +202,8 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         DatasetKind::Blender => blender::load(dir, opts)?,
         DatasetKind::Llff => llff::load(dir, opts)?,
         DatasetKind::Nsvf => nsvf::load(dir, opts)?,
+        DatasetKind::Colmap => colmap::load(dir, opts)?,
+        DatasetKind::Transforms => transforms::load(dir, opts)?,
     };
     if ds.train.is_empty() {
         bail!("{}: the training split is empty", dir.display());
@@ -173,6 +212,20 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         bail!("{}: the test split is empty", dir.display());
     }
     Ok(ds)
+}
+
+/// The layout of a dataset folder and whether it is forward-facing
+/// (rendered in NDC), read from its poses alone (no image is decoded): what
+/// picks a training config's defaults before the dataset is loaded.
+pub fn probe(dir: &Path, shape: Shape) -> Result<(DatasetKind, bool)> {
+    let kind = detect_kind(dir)?;
+    let forward = match kind {
+        DatasetKind::Llff => true,
+        DatasetKind::Blender | DatasetKind::Nsvf => false,
+        DatasetKind::Colmap => posed::is_forward_facing(&colmap::poses(dir)?, shape),
+        DatasetKind::Transforms => posed::is_forward_facing(&transforms::poses(dir)?, shape),
+    };
+    Ok((kind, forward))
 }
 
 /// Reads an image as RGB in `[0, 1]`, compositing alpha over `background`,

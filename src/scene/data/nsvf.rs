@@ -149,10 +149,11 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         val,
         test,
         background: opts.background,
-        bbox_min: Vec3::splat(-1.0),
-        bbox_max: Vec3::splat(1.0),
+        bbox_min: opts.bbox.map_or(Vec3::splat(-1.0), |b| Vec3::from(b[0])),
+        bbox_max: opts.bbox.map_or(Vec3::splat(1.0), |b| Vec3::from(b[1])),
         ndc: None,
         near_far: None,
         warnings: Vec::new(),
+        notes: Vec::new(),
     })
 }
