@@ -86,15 +86,15 @@ fn list_photos(dir: &Path) -> Result<Vec<PathBuf>> {
     Ok(photos)
 }
 
-/// Writes each photo downsized to `max_side` as `input/<stem>.png`; returns the size of the first.
-fn prepare_photos(photos: &[PathBuf], input: &Path, max_side: u32) -> Result<(u32, u32)> {
+/// Writes each photo downsized to `max_side` as `input/<stem>.png`.
+fn prepare_photos(photos: &[PathBuf], input: &Path, max_side: u32) -> Result<()> {
     std::fs::create_dir_all(input)?;
     let mut stems: Vec<_> = photos.iter().map(|p| p.file_stem().map(|s| s.to_owned())).collect();
     stems.sort();
     if stems.windows(2).any(|w| w[0] == w[1]) {
         bail!("two photos share a name with different extensions (a.jpg and a.png): rename one");
     }
-    let sizes: Vec<Result<(u32, u32)>> = photos
+    let written: Vec<Result<()>> = photos
         .par_iter()
         .map(|p| {
             let img = image::open(p).with_context(|| format!("cannot decode the photo {}", p.display()))?;
@@ -106,33 +106,53 @@ fn prepare_photos(photos: &[PathBuf], input: &Path, max_side: u32) -> Result<(u3
             let img = image::imageops::resize(&img, nw, nh, image::imageops::FilterType::Lanczos3);
             let stem = p.file_stem().expect("a listed file has a name");
             let out = input.join(stem).with_extension("png");
-            img.save(&out).with_context(|| format!("cannot write {}", out.display()))?;
-            Ok((nw, nh))
+            img.save(&out).with_context(|| format!("cannot write {}", out.display()))
         })
         .collect();
-    let sizes: Vec<(u32, u32)> = sizes.into_iter().collect::<Result<_>>()?;
-    Ok(sizes[0])
+    written.into_iter().collect()
 }
 
-/// Runs one COLMAP command, its output appended to `log`.
-fn colmap(exe: &Path, args: &[&str], log: &Path) -> Result<()> {
-    let file = std::fs::OpenOptions::new().create(true).append(true).open(log)?;
-    let status = Command::new(exe)
-        .args(args)
-        .env("QT_QPA_PLATFORM", "offscreen")
-        .stdout(Stdio::from(file.try_clone()?))
-        .stderr(Stdio::from(file))
-        .status();
-    match status {
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
-            bail!("COLMAP ({}) is not installed or not on the PATH: {INSTALL}", exe.display())
+/// COLMAP's command line, each run's output appended to one log.
+struct Colmap<'a> {
+    exe: &'a Path,
+    log: &'a Path,
+}
+
+impl Colmap<'_> {
+    /// Runs `colmap COMMAND --KEY VALUE ...`.
+    fn run(&self, command: &str, options: &[(&str, &dyn AsRef<std::ffi::OsStr>)]) -> Result<()> {
+        let file = std::fs::OpenOptions::new().create(true).append(true).open(self.log)?;
+        let mut cmd = Command::new(self.exe);
+        cmd.arg(command);
+        for (key, value) in options {
+            cmd.arg(format!("--{key}")).arg(value);
         }
-        Err(e) => bail!("cannot run {}: {e}", exe.display()),
-        Ok(s) if !s.success() => {
-            bail!("colmap {} failed ({s}); its output is in {}", args[0], log.display())
+        let status = cmd
+            .env("QT_QPA_PLATFORM", "offscreen")
+            .stdout(Stdio::from(file.try_clone()?))
+            .stderr(Stdio::from(file))
+            .status();
+        match status {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+                bail!("COLMAP ({}) is not installed or not on the PATH: {INSTALL}", self.exe.display())
+            }
+            Err(e) => bail!("cannot run {}: {e}", self.exe.display()),
+            Ok(s) if !s.success() => bail!("colmap {command} failed ({s}); its output is in {}", self.log.display()),
+            Ok(_) => Ok(()),
         }
-        Ok(_) => Ok(()),
     }
+}
+
+/// Removes what an earlier capture into the same folder left.
+fn remove_stale(paths: &[PathBuf]) -> Result<()> {
+    for p in paths {
+        if p.is_dir() {
+            std::fs::remove_dir_all(p)?;
+        } else if p.exists() {
+            std::fs::remove_file(p)?;
+        }
+    }
+    Ok(())
 }
 
 /// The model folder under `sparse` with the most registered images, and that count.
@@ -156,55 +176,41 @@ pub fn capture(photos_dir: &Path, out: &Path, opts: &CaptureOptions, progress: &
     let photos = list_photos(photos_dir)?;
     let work = out.join("colmap");
     let (input, sparse, db) = (work.join("input"), work.join("sparse"), work.join("database.db"));
-    for stale in [&input, &sparse] {
-        if stale.exists() {
-            std::fs::remove_dir_all(stale)?;
-        }
-    }
-    if db.exists() {
-        std::fs::remove_file(&db)?;
-    }
+    remove_stale(&[input.clone(), sparse.clone(), db.clone()])?;
     std::fs::create_dir_all(&sparse)?;
     let log = out.join("colmap.log");
     std::fs::write(&log, "")?;
+    let colmap = Colmap { exe: &opts.colmap, log: &log };
     let total = 5;
     let step = |done: usize, what: &str| {
         progress.event(Event::Step { phase: Phase::Capture, done, total, message: what.to_string() });
     };
     progress.event(Event::Start { phase: Phase::Capture, done: 0, total });
     step(0, "photos");
-    let size = prepare_photos(&photos, &input, opts.max_side)?;
-    let (exe, s) = (opts.colmap.as_path(), |p: &Path| p.to_string_lossy().into_owned());
+    prepare_photos(&photos, &input, opts.max_side)?;
     step(1, "features");
     let single = if opts.single_camera { "1" } else { "0" };
-    let model = opts.camera_model.as_str();
-    colmap(
-        exe,
+    colmap.run(
+        "feature_extractor",
         &[
-            "feature_extractor",
-            "--database_path",
-            &s(&db),
-            "--image_path",
-            &s(&input),
-            "--ImageReader.camera_model",
-            model,
-            "--ImageReader.single_camera",
-            single,
-            "--SiftExtraction.use_gpu",
-            "0",
+            ("database_path", &db),
+            ("image_path", &input),
+            ("ImageReader.camera_model", &opts.camera_model),
+            ("ImageReader.single_camera", &single),
+            ("SiftExtraction.use_gpu", &"0"),
         ],
-        &log,
     )?;
     step(2, "matching");
     let matcher = if photos.len() < SEQUENTIAL_FROM { "exhaustive_matcher" } else { "sequential_matcher" };
-    colmap(exe, &[matcher, "--database_path", &s(&db), "--SiftMatching.use_gpu", "0"], &log)?;
+    colmap.run(matcher, &[("database_path", &db), ("SiftMatching.use_gpu", &"0")])?;
     step(3, "mapping");
-    colmap(
-        exe,
-        &["mapper", "--database_path", &s(&db), "--image_path", &s(&input), "--output_path", &s(&sparse)],
-        &log,
-    )?;
+    // The mapper fails outright when it finds no initial pair: that is a
+    // capture registering nothing, reported below like one registering too little.
+    let mapped = colmap.run("mapper", &[("database_path", &db), ("image_path", &input), ("output_path", &sparse)]);
     let largest = largest_model(&sparse)?;
+    if largest.is_some() {
+        mapped?;
+    }
     let needed = ((photos.len() as f64 * MIN_REGISTERED_FRACTION).ceil() as usize).max(3);
     let n = largest.as_ref().map_or(0, |r| r.1);
     let Some((best, registered)) = largest.filter(|(_, n)| *n >= needed) else {
@@ -217,28 +223,14 @@ pub fn capture(photos_dir: &Path, out: &Path, opts: &CaptureOptions, progress: &
         );
     };
     step(4, "undistortion");
-    for stale in [out.join("images"), out.join("sparse")] {
-        if stale.exists() {
-            std::fs::remove_dir_all(&stale)?;
-        }
-    }
-    colmap(
-        exe,
-        &[
-            "image_undistorter",
-            "--image_path",
-            &s(&input),
-            "--input_path",
-            &s(&best),
-            "--output_path",
-            &s(out),
-            "--output_type",
-            "COLMAP",
-        ],
-        &log,
+    remove_stale(&[out.join("images"), out.join("sparse")])?;
+    let output_type = "COLMAP";
+    colmap.run(
+        "image_undistorter",
+        &[("image_path", &input), ("input_path", &best), ("output_path", &out), ("output_type", &output_type)],
     )?;
     let model = colmap_model::read(&out.join("sparse"), Form::Binary)?;
-    let size = model.cameras.values().next().map_or(size, |c| (c.width, c.height));
+    let size = model.cameras.values().next().map_or((0, 0), |c| (c.width, c.height));
     let seconds = started.elapsed().as_secs_f64();
     progress.event(Event::PhaseDone { phase: Phase::Capture, seconds });
     Ok(CaptureReport { photos: photos.len(), registered, points: model.points.len(), size, seconds })
