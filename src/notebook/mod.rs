@@ -145,7 +145,16 @@ impl Scene {
         Ok(Scene { procedural: Some(options), ..Scene::load(dir)? })
     }
 
-    /// Loads a Blender, LLFF or NSVF folder with its kind's default loading options.
+    /// A dataset from a folder of photos through COLMAP (`refnpr capture`,
+    /// `docs/own_scene.md`), written to `out` and loaded.
+    pub fn capture(photos: impl AsRef<Path>, out: impl AsRef<Path>) -> Result<Scene> {
+        let options = crate::tools::capture::CaptureOptions::default();
+        crate::tools::capture::capture(photos.as_ref(), out.as_ref(), &options, &Cells::default())?;
+        Scene::load(out)
+    }
+
+    /// Loads a dataset folder of any layout (Blender, LLFF, NSVF, a COLMAP
+    /// model, `transforms.json`) with its kind's default loading options.
     pub fn load(dir: impl AsRef<Path>) -> Result<Scene> {
         let dir = dir.as_ref();
         Scene::load_with(dir, &TrainConfig::for_dir(dir)?.data)
