@@ -59,18 +59,24 @@ fn fern_loads_recentred_with_ndc_and_a_spiral() {
     }
 }
 
-#[test]
-#[ignore = "needs ../shared/data; run with --ignored"]
-fn lego_short_fit_learns_the_object() {
-    // 400 steps at 64^3 -> 96^3: a smoke test of the real pipeline (the
-    // quality figures come from `refnpr train` with the shipped config).
-    let dir = shared("nerf_synthetic/lego");
+/// 400 steps at 64^3 -> 96^3, SH degree 1: the short lego fit of the tests below.
+fn short_lego_config() -> TrainConfig {
     let mut cfg = TrainConfig::for_kind(DatasetKind::Blender);
     cfg.grid.initial_res = [64; 3];
     cfg.grid.upsample_steps = vec![200];
     cfg.grid.upsample_res = vec![[96; 3]];
     cfg.grid.sh_degree = 1;
     cfg.optim.steps = 400;
+    cfg
+}
+
+#[test]
+#[ignore = "needs ../shared/data; run with --ignored"]
+fn lego_short_fit_learns_the_object() {
+    // 400 steps at 64^3 -> 96^3: a smoke test of the real pipeline (the
+    // quality figures come from `refnpr train` with the shipped config).
+    let dir = shared("nerf_synthetic/lego");
+    let cfg = short_lego_config();
     let mut ds = data::load(&dir, &cfg.data).unwrap();
     ds.test.truncate(3);
     let out = std::env::temp_dir().join(format!("refnpr-lego-{}", std::process::id()));
@@ -89,12 +95,7 @@ fn lego_short_fit_learns_the_object() {
 #[ignore = "needs ../shared/data; run with --ignored"]
 fn lego_as_transforms_json_fits_like_the_blender_loader() {
     let dir = shared("nerf_synthetic/lego");
-    let mut cfg = TrainConfig::for_kind(DatasetKind::Blender);
-    cfg.grid.initial_res = [64; 3];
-    cfg.grid.upsample_steps = vec![200];
-    cfg.grid.upsample_res = vec![[96; 3]];
-    cfg.grid.sh_degree = 1;
-    cfg.optim.steps = 400;
+    let cfg = short_lego_config();
     let mut blender = data::load(&dir, &cfg.data).unwrap();
     blender.test.truncate(3);
     let tmp = common::TempDir::new("lego-ns");
