@@ -16,7 +16,9 @@ fn shared(rel: &str) -> PathBuf {
         .unwrap_or_else(|_| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data"));
     let p = root.join(rel);
     assert!(p.exists(), "{} not found: this group needs the shared data", p.display());
-    p
+    // Absolute: tests write files (a transforms.json) that name these paths
+    // from other folders, and REFNPR_SHARED_DATA may be relative.
+    std::fs::canonicalize(&p).unwrap()
 }
 
 #[test]
