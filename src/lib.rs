@@ -11,6 +11,7 @@
 //! | `reference` | stage 2: reference cases and style images, R³ (plain Rust), the `reference` / `register` commands |
 //! | `stylize` | stage 3: Ref-NPR (R³ + TCM + colour matching) and the ARF baseline: config, losses, TCM, the style field, the sample cache, the step (`StyleStep`), the guides, the run (the loops) |
 //! | `eval` | the stylization metrics (Ref-LPIPS, ground-truth PSNR, warp stability, speckle) |
+//! | `export` | results out: Gaussian splats (3DGS PLY), the iso-surface as a coloured mesh (glb, PLY), MP4 through ffmpeg, surface points |
 //! | `tools` | `capture` (photos to a dataset through COLMAP), the benchmarks, the one-command demo, the robustness study, the fuzzer, the painterly repaint filter |
 //! | `notebook` | the front API: one type per stage whose values display in a Jupyter cell (evcxr) |
 //!
@@ -38,6 +39,7 @@
 #![deny(rustdoc::broken_intra_doc_links)]
 
 pub mod eval;
+pub mod export;
 pub mod field;
 pub mod notebook;
 pub mod photo;

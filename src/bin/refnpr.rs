@@ -7,6 +7,7 @@ use anyhow::{Context, Result, ensure};
 use clap::parser::ValueSource;
 use clap::{ArgMatches, CommandFactory, FromArgMatches, Parser, Subcommand};
 use refnpr::eval::stylization::{EvalJob, RobustnessViews};
+use refnpr::export::{self, ExportOptions, Format as ExportFormat};
 use refnpr::field::checkpoint::{self, Checkpoint};
 use refnpr::field::render_path::{self, PathKind};
 use refnpr::photo::config::TrainConfig;
@@ -333,6 +334,50 @@ enum Command {
         #[arg(long)]
         steps: Option<usize>,
     },
+    /// Exports a run's field for other tools: Gaussian splats (3DGS PLY), a coloured mesh (glb or PLY), an MP4, surface points.
+    Export {
+        /// Run folder (or checkpoint file), photoreal or stylized.
+        run: PathBuf,
+        #[arg(long, value_enum)]
+        format: ExportFormat,
+        /// Output file (default: RUN/splats.ply, mesh.glb, path.mp4 or points.ply).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Splats: the SH degree written (default: the field's).
+        #[arg(long)]
+        sh_degree: Option<u32>,
+        /// Splats: keep at most this many, the most opaque first.
+        #[arg(long)]
+        max_splats: Option<usize>,
+        /// Splats: keep the points buried inside opaque matter too.
+        #[arg(long)]
+        keep_buried: bool,
+        /// Mesh: the density level of the surface (default: where one voxel absorbs half the light).
+        #[arg(long)]
+        level: Option<f32>,
+        /// Video: the camera path.
+        #[arg(long, value_enum, default_value_t = PathKind::Orbit)]
+        path: PathKind,
+        /// Video: frames of an orbit or spiral.
+        #[arg(long, default_value_t = 120)]
+        frames: usize,
+        #[arg(long, default_value_t = 30)]
+        fps: u32,
+        /// Video: the frame width (default: the dataset's; the height keeps the aspect).
+        #[arg(long)]
+        width: Option<u32>,
+        /// Video: the ffmpeg executable.
+        #[arg(long, default_value = "ffmpeg")]
+        ffmpeg: String,
+        /// Points: every N-th pixel of the training views along both axes.
+        #[arg(long, default_value_t = 2)]
+        stride: usize,
+        /// Dataset folder (default: the one the run was trained on); video and points only.
+        #[arg(long)]
+        data: Option<PathBuf>,
+        #[arg(long, value_enum)]
+        backend: Option<BackendKind>,
+    },
     /// Renders a camera path from a trained run.
     Render {
         /// Run folder (or checkpoint file).
@@ -473,6 +518,7 @@ fn run() -> Result<()> {
         Command::Train { data, out, config, backend, resume, steps } => {
             run_train(&data, &out, config.as_deref(), backend_or_env(backend, &progress)?, resume, steps, &progress)
         }
+        Command::Export { .. } => run_export(cli.command, &progress),
         Command::Render { ckpt, path, out, frames, data, backend } => {
             run_render(&ckpt, path, &out, frames, data.as_deref(), backend, &progress)
         }
@@ -577,6 +623,52 @@ fn run_render(
     render_path::render_frames(&ck, &cams, out, progress)?;
     println!("rendered {} frames to {}", cams.len(), out.display());
     Ok(())
+}
+
+/// `refnpr export`.
+fn run_export(command: Command, progress: &Console) -> Result<()> {
+    let Command::Export {
+        run,
+        format,
+        out,
+        sh_degree,
+        max_splats,
+        keep_buried,
+        level,
+        path,
+        frames,
+        fps,
+        width,
+        ffmpeg,
+        stride,
+        data,
+        backend,
+    } = command
+    else {
+        unreachable!("called for export")
+    };
+    let device = backend_or_env(backend, progress)?.device();
+    let ck = checkpoint::load_with(&checkpoint::resolve(&run), &device, false)?;
+    let dataset = if export::needs_dataset(format) {
+        let dir = data.unwrap_or_else(|| ck.meta.data_dir.clone());
+        Some(
+            data::load(&dir, &ck.meta.data)
+                .with_context(|| format!("loading the run's dataset {} (pass --data to use another)", dir.display()))?,
+        )
+    } else {
+        None
+    };
+    let out = out.unwrap_or_else(|| run_folder(&run).join(format.default_file()));
+    let splat = export::splat::SplatOptions { sh_degree, max_splats, drop_buried: !keep_buried, ..Default::default() };
+    let options = ExportOptions { splat, level, path, frames, fps, width, ffmpeg, stride };
+    let r = export::export(&ck, dataset.as_ref(), format, &out, &options, progress)?;
+    println!("wrote {} ({}; {:.1} MB in {:.1} s)", r.file.display(), r.summary, r.bytes as f64 / 1e6, r.seconds);
+    Ok(())
+}
+
+/// The folder of a run given as a folder or as its checkpoint file.
+fn run_folder(run: &Path) -> PathBuf {
+    if run.is_dir() { run.to_path_buf() } else { run.parent().map(Path::to_path_buf).unwrap_or_default() }
 }
 
 /// The backend asked for (or `REFNPR_BACKEND`'s), brought up: wgpu names
