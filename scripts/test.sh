@@ -4,6 +4,7 @@
 #   ndarray: renderer, grid, VGG16, the stylization losses / TCM / deferred back-propagation, the metrics, the notebook API
 #   wgpu:    the same plus training, through Mesa's software Vulkan when no GPU is present
 #   (end-to-end stylization and the demo run on flex only: VGG on lavapipe or ndarray is 10-100x slower)
+#   exports: the example's runs as splats and a mesh, opened in headless Chromium (npm viewers) and trimesh
 #   real data (../shared/data: lego, fern): loaders and a short fit, when that folder exists
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -37,6 +38,10 @@ REFNPR_BACKEND=flex cargo test --all-targets
 echo "== the front API's example: procedural scene to stylized orbit (flex)"
 REFNPR_BACKEND=flex cargo run --example orbit -- target/example-orbit
 test -s target/example-orbit/orbit/path.gif
+
+echo "== exports in other tools: splats in a browser splat renderer, the mesh in three.js and trimesh (the example's runs)"
+BIN="target/${CARGO_BUILD_TARGET:+$CARGO_BUILD_TARGET/}debug/refnpr"
+bash scripts/check_exports.sh "$BIN" target/example-orbit/photo target/example-orbit/stylized
 
 echo "== docs: the library's rustdoc, warnings (broken links included) denied"
 RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --lib --quiet

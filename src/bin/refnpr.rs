@@ -352,6 +352,13 @@ enum Command {
         /// Splats: keep the points buried inside opaque matter too.
         #[arg(long)]
         keep_buried: bool,
+        /// Splats: their size relative to the Gaussian matched to a voxel's trilinear tent.
+        #[arg(long, default_value_t = 1.0)]
+        splat_scale: f32,
+        /// Splats: thin each splat's opacity for a viewer that blurs splats by this many pixels squared
+        /// without compensating (0.3 for 3DGS-style viewers), at the training views' resolution; 0: off.
+        #[arg(long, default_value_t = 0.0)]
+        viewer_blur: f32,
         /// Mesh: the density level of the surface (default: where one voxel absorbs half the light).
         #[arg(long)]
         level: Option<f32>,
@@ -634,6 +641,8 @@ fn run_export(command: Command, progress: &Console) -> Result<()> {
         sh_degree,
         max_splats,
         keep_buried,
+        splat_scale,
+        viewer_blur,
         level,
         path,
         frames,
@@ -649,7 +658,17 @@ fn run_export(command: Command, progress: &Console) -> Result<()> {
     };
     let device = backend_or_env(backend, progress)?.device();
     let ck = checkpoint::load_with(&checkpoint::resolve(&run), &device, false)?;
-    let dataset = if export::needs_dataset(format) {
+    let out = out.unwrap_or_else(|| run_folder(&run).join(format.default_file()));
+    let splat = export::splat::SplatOptions {
+        sh_degree,
+        max_splats,
+        drop_buried: !keep_buried,
+        scale: splat_scale,
+        viewer_blur,
+        ..Default::default()
+    };
+    let options = ExportOptions { splat, level, path, frames, fps, width, ffmpeg, stride };
+    let dataset = if export::needs_dataset(format, &options) {
         let dir = data.unwrap_or_else(|| ck.meta.data_dir.clone());
         Some(
             data::load(&dir, &ck.meta.data)
@@ -658,9 +677,6 @@ fn run_export(command: Command, progress: &Console) -> Result<()> {
     } else {
         None
     };
-    let out = out.unwrap_or_else(|| run_folder(&run).join(format.default_file()));
-    let splat = export::splat::SplatOptions { sh_degree, max_splats, drop_buried: !keep_buried, ..Default::default() };
-    let options = ExportOptions { splat, level, path, frames, fps, width, ffmpeg, stride };
     let r = export::export(&ck, dataset.as_ref(), format, &out, &options, progress)?;
     println!("wrote {} ({}; {:.1} MB in {:.1} s)", r.file.display(), r.summary, r.bytes as f64 / 1e6, r.seconds);
     Ok(())

@@ -97,9 +97,13 @@ pub struct ExportReport {
     pub seconds: f64,
 }
 
-/// Whether `format` needs the run's dataset (its cameras).
-pub fn needs_dataset(format: Format) -> bool {
-    matches!(format, Format::Video | Format::Points | Format::Cameras)
+/// Whether an export needs the run's dataset (its cameras).
+pub fn needs_dataset(format: Format, options: &ExportOptions) -> bool {
+    match format {
+        Format::Splat => options.splat.viewer_blur > 0.0,
+        Format::Mesh => false,
+        Format::Video | Format::Points | Format::Cameras => true,
+    }
 }
 
 /// Exports `ck`'s field as `format` into `out`; `dataset` (the run's
@@ -118,7 +122,11 @@ pub fn export(
     let cameras_of = || dataset.ok_or_else(|| anyhow::anyhow!("a {format:?} export needs the run's dataset"));
     let summary = match format {
         Format::Splat => {
-            let s = splat::splats_of(&ck.grid, ndc, &options.splat)?;
+            let cameras: Vec<Camera> = match dataset {
+                Some(d) if options.splat.viewer_blur > 0.0 => d.train.iter().map(|v| v.camera).collect(),
+                _ => Vec::new(),
+            };
+            let s = splat::splats_of(&ck.grid, ndc, &options.splat, &cameras)?;
             if s.is_empty() {
                 bail!("{source}: no point of the field is opaque enough for a splat (is the run trained?)");
             }

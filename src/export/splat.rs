@@ -25,7 +25,7 @@ use glam::{Mat3, Quat, Vec3};
 
 use crate::export::ply::{Ply, Scalar};
 use crate::field::grid::RadianceGrid;
-use crate::scene::camera::{NdcParams, from_ndc};
+use crate::scene::camera::{Camera, NdcParams, from_ndc};
 use crate::scene::sh;
 use anyhow::{Result, bail};
 
@@ -41,11 +41,30 @@ pub struct SplatOptions {
     pub min_opacity: f32,
     /// Drop splats buried inside opaque matter.
     pub drop_buried: bool,
+    /// The splats' size relative to the tent-matched Gaussian.
+    pub scale: f32,
+    /// The screen-space blur, in pixels squared, that the target viewer
+    /// adds to every splat without compensating its opacity (0.3 in 3DGS's
+    /// rasteriser and the viewers that copy it; 0: none). The blur spreads
+    /// each splat's opacity over a larger footprint, so sub-pixel splats
+    /// pile up too dark; given it, each opacity is scaled by
+    /// `s^2 / (s^2 + blur)` (`s`: the splat's size in pixels at the median
+    /// distance from the cameras passed to [`splats_of`]), what an
+    /// antialiased viewer does by itself. Exact at those cameras'
+    /// resolution; nearer or larger views see the splats thinner.
+    pub viewer_blur: f32,
 }
 
 impl Default for SplatOptions {
     fn default() -> Self {
-        Self { sh_degree: None, max_splats: None, min_opacity: 1.0 / 255.0, drop_buried: true }
+        Self {
+            sh_degree: None,
+            max_splats: None,
+            min_opacity: 1.0 / 255.0,
+            drop_buried: true,
+            scale: 1.0,
+            viewer_blur: 0.0,
+        }
     }
 }
 
@@ -81,8 +100,17 @@ const TENT_TO_SIGMA: f32 = 0.408_248_3; // 1 / sqrt(6)
 const BURIED_DEPTH: f32 = 6.907_755;
 
 /// The splats of `grid` (`ndc`: the warp its lattice lives in, for
-/// forward-facing scenes).
-pub fn splats_of(grid: &RadianceGrid, ndc: Option<&NdcParams>, options: &SplatOptions) -> Result<Splats> {
+/// forward-facing scenes); `cameras` are the views `viewer_blur` is
+/// compensated for (unused without it).
+pub fn splats_of(
+    grid: &RadianceGrid,
+    ndc: Option<&NdcParams>,
+    options: &SplatOptions,
+    cameras: &[Camera],
+) -> Result<Splats> {
+    if options.viewer_blur > 0.0 && cameras.is_empty() {
+        bail!("compensating a viewer's blur needs the cameras it is measured at");
+    }
     let degree = options.sh_degree.unwrap_or(grid.sh_degree);
     if degree > grid.sh_degree {
         bail!("the field has SH degree {}; a splat file of degree {degree} would only pad zeros", grid.sh_degree);
@@ -109,7 +137,7 @@ pub fn splats_of(grid: &RadianceGrid, ndc: Option<&NdcParams>, options: &SplatOp
     for &r in &kept {
         let ijk = geo.unflat(grid.coords[r] as usize);
         let centre = geo.grid_to_world(Vec3::new(ijk[0] as f32, ijk[1] as f32, ijk[2] as f32));
-        let sigma = voxel * TENT_TO_SIGMA;
+        let sigma = voxel * TENT_TO_SIGMA * options.scale;
         let (position, scale, rotation) = match ndc {
             None => (centre, sigma, Quat::IDENTITY),
             Some(p) => match warped_gaussian(centre, sigma, p) {
@@ -120,13 +148,27 @@ pub fn splats_of(grid: &RadianceGrid, ndc: Option<&NdcParams>, options: &SplatOp
         s.position.push(position);
         s.scale.push(scale);
         s.rotation.push(rotation);
-        s.opacity.push(1.0 - (-optical[r]).exp());
+        let alpha = 1.0 - (-optical[r]).exp();
+        s.opacity.push(if options.viewer_blur > 0.0 {
+            let pixels = scale.element_sum() / 3.0 * median_pixels_per_unit(position, cameras);
+            alpha * pixels * pixels / (pixels * pixels + options.viewer_blur)
+        } else {
+            alpha
+        });
         for ch in 0..3 {
             let row = &sh_rows[r * 3 * rows_basis + ch * rows_basis..][..out_basis];
             s.sh.extend_from_slice(row);
         }
     }
     Ok(s)
+}
+
+/// Pixels per world unit at `p`, the median over `cameras` (focal length
+/// over distance).
+fn median_pixels_per_unit(p: Vec3, cameras: &[Camera]) -> f32 {
+    let mut v: Vec<f32> = cameras.iter().map(|c| c.intrinsics.fx / (p - c.position()).length().max(1e-6)).collect();
+    v.sort_by(f32::total_cmp);
+    v[v.len() / 2]
 }
 
 /// Whether every axis direction from row `r`'s point is blocked: the
@@ -293,15 +335,25 @@ mod tests {
     fn a_solid_ball_keeps_its_shell_and_drops_its_core() {
         let device = Default::default();
         let grid = sphere_grid(24, &device);
-        let all = splats_of(&grid, None, &SplatOptions { drop_buried: false, ..Default::default() }).unwrap();
-        let shell = splats_of(&grid, None, &SplatOptions::default()).unwrap();
+        let all = splats_of(&grid, None, &SplatOptions { drop_buried: false, ..Default::default() }, &[]).unwrap();
+        let shell = splats_of(&grid, None, &SplatOptions::default(), &[]).unwrap();
         assert!(!shell.is_empty() && shell.len() < all.len(), "{} of {}", shell.len(), all.len());
-        let budget = splats_of(&grid, None, &SplatOptions { max_splats: Some(10), ..Default::default() }).unwrap();
+        let budget = splats_of(&grid, None, &SplatOptions { max_splats: Some(10), ..Default::default() }, &[]).unwrap();
         assert_eq!(budget.len(), 10);
         assert!(budget.opacity.iter().all(|&o| o >= *shell.opacity.iter().min_by(|a, b| a.total_cmp(b)).unwrap()));
         let ply = to_ply(&shell, "test");
         let expected = 6 + 3 + 3 * (sh::num_basis(grid.sh_degree) - 1) + 1 + 3 + 4;
         assert_eq!(ply.columns.len(), expected);
-        assert!(splats_of(&grid, None, &SplatOptions { sh_degree: Some(3), ..Default::default() }).is_err());
+        assert!(splats_of(&grid, None, &SplatOptions { sh_degree: Some(3), ..Default::default() }, &[]).is_err());
+        // Blur compensation: thinner splats, by s^2 / (s^2 + blur), never thicker.
+        let blur = SplatOptions { viewer_blur: 0.3, ..Default::default() };
+        assert!(splats_of(&grid, None, &blur, &[]).is_err(), "needs cameras");
+        let k = crate::scene::camera::Intrinsics::from_fov_x(64, 64, 0.7);
+        let far = Camera::new(k, glam::Mat4::from_translation(Vec3::new(0.0, 0.0, 4.0)));
+        let thin = splats_of(&grid, None, &blur, &[far]).unwrap();
+        assert_eq!(thin.len(), shell.len());
+        let px = shell.scale[0].x * k.fx / (shell.position[0] - far.position()).length();
+        let expected = shell.opacity[0] * px * px / (px * px + 0.3);
+        assert!((thin.opacity[0] - expected).abs() < 1e-5, "{} vs {expected}", thin.opacity[0]);
     }
 }
