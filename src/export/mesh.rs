@@ -5,7 +5,8 @@
 //! cells' faces agree): no case tables to get wrong, and with vertices keyed
 //! by the lattice edge they sit on, the surface is closed wherever the
 //! level set is (the lattice is padded with empty points, so the box's
-//! faces close it too). Colours are the field's view-independent colour
+//! faces close it too; not for forward-facing fields, whose box is the
+//! view frustum: their surface is open at its edges). Colours are the field's view-independent colour
 //! (the SH degree-0 term) of the cell's corners weighted by their density;
 //! normals are the
 //! area-weighted mean of the faces around each vertex.
@@ -71,9 +72,14 @@ pub fn mesh_of(grid: &RadianceGrid, ndc: Option<&NdcParams>, level: f32) -> Resu
     let mut mesh = Mesh::default();
     let mut on_edge: HashMap<(i64, i64), u32> = HashMap::new();
     let mut lattice_positions = Vec::new();
-    for i in -1..res[0] {
-        for j in -1..res[1] {
-            for k in -1..res[2] {
+    // Cells from the padding on (closing the surface at the box's faces),
+    // except for a forward-facing field: its box is the view frustum, whose
+    // near and side faces cut through the scene and would cap it with walls.
+    let first = if ndc.is_some() { 0 } else { -1 };
+    let last = |a: usize| if ndc.is_some() { res[a] - 1 } else { res[a] };
+    for i in first..last(0) {
+        for j in first..last(1) {
+            for k in first..last(2) {
                 let corner = |c: usize| [i + ((c >> 2) & 1) as i64, j + ((c >> 1) & 1) as i64, k + (c & 1) as i64];
                 let values: [f32; 8] = std::array::from_fn(|c| value(corner(c)));
                 if values.iter().all(|&v| v > level) || values.iter().all(|&v| v <= level) {
