@@ -67,16 +67,40 @@ fn checkpoint_round_trip_preserves_the_grid_and_renders() {
     std::fs::write(&bad, b"REFNPRG1 truncated").unwrap();
     let e = format!("{:#}", checkpoint::load(&bad, &dev).err().unwrap());
     assert!(e.contains("bad.bin") && e.contains("corrupt"), "{e}");
+    std::fs::write(&bad, b"P6 an image, not a checkpoint").unwrap();
+    let e = format!("{:#}", checkpoint::load(&bad, &dev).err().unwrap());
+    assert!(e.contains("bad.bin") && e.contains("not a refnpr checkpoint"), "{e}");
     let e = format!("{:#}", checkpoint::load(&t.path().join("nothing"), &dev).err().unwrap());
     assert!(e.contains("no checkpoint"), "{e}");
 }
 
-/// A checkpoint is streamed from the tensors in blocks of rows; its bytes
-/// are still exactly bincode's encoding of the arrays read out whole (the
-/// format `checkpoint::load` and every earlier file use), here on a grid of
-/// 3 M SH values, three blocks and a part.
+/// That `file` is a safetensors checkpoint of `tensors` (name, dtype,
+/// shape, little-endian bytes) and `meta_json`, read by hand.
+fn assert_safetensors_file(file: &[u8], meta_json: &str, tensors: &[(&str, &str, Vec<usize>, Vec<u8>)]) {
+    let n_header = u64::from_le_bytes(file[..8].try_into().unwrap()) as usize;
+    assert_eq!((8 + n_header) % 8, 0, "the data starts aligned");
+    let header: serde_json::Value = serde_json::from_slice(&file[8..8 + n_header]).unwrap();
+    let data = &file[8 + n_header..];
+    assert_eq!(header["__metadata__"]["format"], checkpoint::FORMAT);
+    assert_eq!(header["__metadata__"]["meta"], meta_json);
+    let mut end = 0;
+    for (name, dtype, shape, bytes) in tensors {
+        let e = &header[*name];
+        assert_eq!((e["dtype"].as_str(), e["shape"].clone()), (Some(*dtype), serde_json::json!(shape)), "{name}");
+        let offset = |i: usize| e["data_offsets"][i].as_u64().unwrap() as usize;
+        assert!(data[offset(0)..offset(1)] == bytes[..], "{name}'s bytes");
+        end = end.max(offset(1));
+    }
+    assert_eq!(end, data.len(), "nothing after the tensors");
+}
+
+/// A checkpoint is streamed from the tensors in blocks of rows into a
+/// safetensors file: read here by hand (the header's JSON, each tensor's
+/// dtype, shape and bytes) against the arrays read out whole, on a grid of
+/// 3 M SH values, three blocks and a part. Files of the bincode layout
+/// written before still load.
 #[test]
-fn a_checkpoint_streamed_in_blocks_is_bincodes_encoding_of_its_arrays() {
+fn a_checkpoint_streamed_in_blocks_is_a_safetensors_file_of_its_arrays() {
     #[derive(serde::Serialize)]
     struct Whole {
         meta_json: String,
@@ -118,10 +142,17 @@ fn a_checkpoint_streamed_in_blocks_is_bincodes_encoding_of_its_arrays() {
         opt_density: to_vec(opt_density.clone()),
         opt_sh: to_vec(opt_sh.clone()),
     };
-    let expected = [&b"REFNPRG1"[..], &bincode::serialize(&whole).unwrap()].concat();
     let written = std::fs::read(&path).unwrap();
-    assert_eq!(written.len(), expected.len());
-    assert!(written == expected, "the streamed checkpoint differs from bincode's encoding");
+    let le = |v: &[f32]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
+    let coords: Vec<u8> = whole.coords.iter().flat_map(|x| x.to_le_bytes()).collect();
+    let tensors = [
+        ("coords", "U32", vec![n], coords),
+        ("density", "F32", vec![n, 1], le(&whole.density)),
+        ("sh", "F32", vec![n, cols], le(&whole.sh)),
+        ("opt_density", "F32", vec![n, 1], le(&whole.opt_density)),
+        ("opt_sh", "F32", vec![n, cols], le(&whole.opt_sh)),
+    ];
+    assert_safetensors_file(&written, &whole.meta_json, &tensors);
     let ck = checkpoint::load(&path, &dev).unwrap();
     assert_eq!(to_vec(ck.opt_sh), whole.opt_sh);
     assert_eq!(to_vec(ck.opt_density), whole.opt_density);
@@ -149,6 +180,7 @@ fn a_checkpoint_streamed_in_blocks_is_bincodes_encoding_of_its_arrays() {
     }
     fields.insert("config".into(), serde_json::to_value(&config).unwrap());
     let earlier = Whole { meta_json: old.to_string(), coords: ck_coords, sh: ck_sh, ..whole };
+    // (Written as bincode's layout after the tag REFNPRG1: the checkpoint file before safetensors.)
     std::fs::write(&path, [&b"REFNPRG1"[..], &bincode::serialize(&earlier).unwrap()].concat()).unwrap();
     let ck = checkpoint::load(&path, &dev).unwrap();
     assert_eq!(ck.meta.render, config.render_settings());

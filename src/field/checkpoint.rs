@@ -1,24 +1,31 @@
 //! Checkpoints: everything needed to render (grid, SH degree, bounds, NDC,
 //! dataset kind, render settings) plus the optimiser state and the writing
 //! run's config for resuming, in one file written atomically (temporary
-//! file, then rename).
+//! file, then rename): a safetensors file, which Python (`safetensors`,
+//! numpy), PyTorch and `burn-store` read without refnpr.
 
 use crate::field::grid::{GridGeometry, RadianceGrid};
 use crate::field::view::{RenderSettings, ViewRender, ViewRenderer};
 use crate::scene::camera::{Camera, NdcParams};
 use crate::scene::data::{DatasetKind, LoadOptions};
 use crate::util::input::InputError;
+use crate::util::safetensors::{self, DType};
 use crate::util::tensor::floats;
 use crate::util::{bin_fields, files, rows_op};
 use anyhow::{Context, Result, bail};
 
 use burn::tensor::{Device, Tensor};
 use serde::{Deserialize, Serialize};
-use std::io::{self, BufRead, Seek, Write};
+use std::collections::BTreeMap;
+use std::io::{self, BufRead, Read, Seek, Write};
 use std::path::{Path, PathBuf};
 
 pub const CHECKPOINT_FILE: &str = "checkpoint.bin";
+/// The tag of the files written before checkpoints were safetensors (still read).
 const MAGIC: &[u8; 8] = b"REFNPRG1";
+/// What a checkpoint's safetensors metadata says it is (`format`, `version`).
+pub const FORMAT: &str = "refnpr-checkpoint";
+const VERSION: &str = "2";
 
 /// What a checkpoint says about its scene and run.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -45,9 +52,13 @@ pub struct CheckpointMeta {
     pub train_seconds: f64,
 }
 
-/// The file's content after its magic tag: bincode's layout of these
-/// fields, in this order ([`save`] writes them, [`read_payload`] reads
-/// them, `util::bin_fields`).
+/// A checkpoint's content: in a safetensors file the tensors `coords`
+/// (U32 `[rows]`), `density` (F32 `[rows, 1]`), `sh` (F32 `[rows, 3 x
+/// basis]`), `opt_density`, `opt_sh` (RMSprop's averages, the same shapes,
+/// or 0 rows), and the metadata strings `format` = [`FORMAT`], `version`,
+/// `meta` (the [`CheckpointMeta`] as JSON). Files written before hold
+/// bincode's layout of these fields after the tag `REFNPRG1`
+/// (`util::bin_fields`, read by [`read_legacy`]).
 struct Payload {
     meta_json: String,
     coords: Vec<u32>,
@@ -102,9 +113,9 @@ pub fn resolve(path: &Path) -> PathBuf {
 /// (4 MB: stays in cache between the read, the check and the encoding).
 const SAVE_BLOCK_VALUES: usize = 1 << 20;
 
-/// Writes a checkpoint (atomically: `files::write_atomic`). The grid and
-/// optimiser arrays go from their tensors to the file in blocks
-/// (`util::bin_fields`, the bytes bincode writes for `Payload`), each block
+/// Writes a checkpoint (atomically: `files::write_atomic`) as a
+/// safetensors file (`Payload`). The grid and optimiser arrays go from
+/// their tensors to the file in blocks, each block
 /// checked for NaN and infinities on the way: a diverged field is refused
 /// and the file keeps its previous content.
 pub fn save(
@@ -122,15 +133,28 @@ pub fn save(
         ("optimiser state", opt_sh),
     ];
     let nothing_kept = if path.exists() { "" } else { "; nothing was written" };
+    let shape = |t: &Tensor<2>| t.shape().dims::<2>().to_vec();
+    let metadata = BTreeMap::from([
+        ("format".to_string(), FORMAT.to_string()),
+        ("version".to_string(), VERSION.to_string()),
+        ("meta".to_string(), meta_json),
+    ]);
+    let (header, _) = safetensors::header(
+        &[
+            ("coords", DType::U32, vec![grid.coords.len()]),
+            ("density", DType::F32, shape(&grid.density)),
+            ("sh", DType::F32, shape(&grid.sh)),
+            ("opt_density", DType::F32, shape(opt_density)),
+            ("opt_sh", DType::F32, shape(opt_sh)),
+        ],
+        &metadata,
+    );
     files::write_atomic(path, |w| {
         let io = |e| files::io_error(e, path);
         let mut scratch = Vec::new();
-        w.write_all(MAGIC).map_err(io)?;
-        bin_fields::write_str(w, &meta_json).map_err(io)?;
-        bin_fields::write_len(w, grid.coords.len()).map_err(io)?;
-        bin_fields::write_values(w, &grid.coords, u32::to_le_bytes, &mut scratch).map_err(io)?;
+        w.write_all(&header).map_err(io)?;
+        safetensors::write_values(w, &grid.coords, u32::to_le_bytes, &mut scratch).map_err(io)?;
         for (what, values) in arrays {
-            bin_fields::write_len(w, values.shape().num_elements()).map_err(io)?;
             rows_op::for_each_row_block(values, SAVE_BLOCK_VALUES, |block| {
                 if !block.iter().fold(true, |finite, v| finite & v.is_finite()) {
                     bail!(
@@ -140,7 +164,7 @@ pub fn save(
                         meta.step
                     );
                 }
-                bin_fields::write_values(w, block, f32::to_le_bytes, &mut scratch).map_err(io)
+                safetensors::write_values(w, block, f32::to_le_bytes, &mut scratch).map_err(io)
             })?;
         }
         Ok(())
@@ -160,15 +184,17 @@ pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<
         let message = format!("no checkpoint at {} (train one with `refnpr train`)", path.display());
         return Err(InputError::Missing { path, message }.into());
     }
-    let (file, len) = files::open_tagged(&path, MAGIC, "a refnpr checkpoint")?;
-    let fields = bin_fields::FieldReader::new(file, len);
     let malformed = |message: String| InputError::Malformed { path: path.clone(), message };
-    let p =
-        read_payload(fields, optimiser_state).with_context(|| malformed(format!("{} is corrupt", path.display())))?;
+    let p = read_file(&path, optimiser_state)?;
     let meta = parse_meta(&p.meta_json).with_context(|| malformed(format!("{}: corrupt metadata", path.display())))?;
     let n = p.coords.len();
+    if meta.sh_degree > 3 {
+        return Err(malformed(format!("{}: SH degree {} (at most 3)", path.display(), meta.sh_degree)).into());
+    }
     let cols = 3 * crate::scene::sh::num_basis(meta.sh_degree);
-    let npts = meta.geometry.num_points();
+    let npts = plausible_lattice(meta.geometry.res, n)
+        .ok_or_else(|| malformed(format!("{}: a {:?} lattice for {n} rows", path.display(), meta.geometry.res)))?;
+    crate::field::grid::check_fits(meta.geometry.res, n, meta.sh_degree)?;
     if p.density.len() != n || p.sh.len() != n * cols || p.coords.iter().any(|&c| c as usize >= npts) {
         return Err(malformed(format!("{}: grid arrays have inconsistent sizes", path.display())).into());
     }
@@ -192,6 +218,17 @@ pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<
     Ok(Checkpoint { source: path, meta, grid, opt_density, opt_sh })
 }
 
+/// The lattice's point count, when a fit could have written it for `rows`
+/// stored rows: the links array (4 bytes a point) is allocated from the
+/// metadata alone, so a corrupt resolution must not allocate gigabytes. A
+/// fit prunes to far more than one point in 4096 (lego: 1 in 15), and any
+/// lattice up to 2^24 points (64 MB of links) passes.
+fn plausible_lattice(res: [usize; 3], rows: usize) -> Option<usize> {
+    let points = res.iter().try_fold(1usize, |p, &r| p.checked_mul(r))?;
+    let bound = (1usize << 24).saturating_add(rows.saturating_mul(4096)).min(i32::MAX as usize);
+    (points <= bound && res.iter().all(|&r| r > 0)).then_some(points)
+}
+
 /// The metadata JSON. Files written before the field stored its own
 /// settings hold the whole training config under `config` instead of
 /// `render`, `data` and `run_config`: they are read by taking the march
@@ -211,9 +248,55 @@ fn parse_meta(json: &str) -> Result<CheckpointMeta> {
     Ok(serde_json::from_value(value)?)
 }
 
-/// The file's fields, read straight into their vectors (`bin_fields`);
+/// A checkpoint file's arrays and metadata: safetensors, or the bincode
+/// layout of the files written before it (`REFNPRG1`, still read).
+fn read_file(path: &Path, optimiser_state: bool) -> Result<Payload> {
+    let corrupt = |e: io::Error| InputError::Malformed {
+        path: path.to_path_buf(),
+        message: format!("{} is corrupt: {e}", path.display()),
+    };
+    let mut file = std::fs::File::open(path).map_err(|e| files::io_error(e, path))?;
+    let len = file.metadata().map(|m| m.len()).unwrap_or(0);
+    let mut start = [0u8; 9];
+    let read = file.read(&mut start).map_err(|e| files::io_error(e, path))?;
+    if read >= 8 && &start[..8] == MAGIC {
+        let (file, len) = files::open_tagged(path, MAGIC, "a refnpr checkpoint")?;
+        return Ok(read_legacy(bin_fields::FieldReader::new(file, len), optimiser_state).map_err(corrupt)?);
+    }
+    if !safetensors::looks_like(&start[..read], len) {
+        let message = format!("{} is not a refnpr checkpoint", path.display());
+        return Err(InputError::WrongKind { path: path.to_path_buf(), message }.into());
+    }
+    file.seek(io::SeekFrom::Start(0)).map_err(|e| files::io_error(e, path))?;
+    let mut r = io::BufReader::new(file);
+    read_safetensors(&mut r, len, optimiser_state).map_err(corrupt).map_err(Into::into)
+}
+
+/// A safetensors checkpoint: the metadata's `meta` and the five arrays
+/// (the optimiser's two passed over, not read, without `optimiser_state`).
+fn read_safetensors(r: &mut (impl Read + Seek), len: u64, optimiser_state: bool) -> io::Result<Payload> {
+    let safetensors::Header { metadata, entries, data_start: data } = safetensors::read_header(r, len)?;
+    let invalid = |m: String| io::Error::new(io::ErrorKind::InvalidData, m);
+    if metadata.get("format").map(String::as_str) != Some(FORMAT) {
+        return Err(invalid(format!("a safetensors file, but not a refnpr checkpoint (no format \"{FORMAT}\")")));
+    }
+    let meta_json = metadata.get("meta").cloned().ok_or_else(|| invalid("no meta in the metadata".into()))?;
+    let entry = |name: &str, dtype: DType| match entries.get(name) {
+        Some(e) if e.dtype == dtype => Ok(e.clone()),
+        _ => Err(invalid(format!("no {dtype:?} tensor {name}"))),
+    };
+    let floats =
+        |r: &mut _, name: &str| safetensors::read_values(r, data, &entry(name, DType::F32)?, f32::from_le_bytes);
+    let coords = safetensors::read_values(r, data, &entry("coords", DType::U32)?, u32::from_le_bytes)?;
+    let (density, sh) = (floats(r, "density")?, floats(r, "sh")?);
+    let (opt_density, opt_sh) =
+        if optimiser_state { (floats(r, "opt_density")?, floats(r, "opt_sh")?) } else { (Vec::new(), Vec::new()) };
+    Ok(Payload { meta_json, coords, density, sh, opt_density, opt_sh })
+}
+
+/// The legacy file's fields, read straight into their vectors (`bin_fields`);
 /// without `optimiser_state` its two arrays are passed over, not read.
-fn read_payload(mut r: bin_fields::FieldReader<impl BufRead + Seek>, optimiser_state: bool) -> io::Result<Payload> {
+fn read_legacy(mut r: bin_fields::FieldReader<impl BufRead + Seek>, optimiser_state: bool) -> io::Result<Payload> {
     let mut p = Payload {
         meta_json: r.read_str()?,
         coords: r.read_vec(u32::from_le_bytes)?,

@@ -1,4 +1,5 @@
-//! Bincode 1's layout (`bincode::serialize`, the fixint encoding that
+//! Bincode 1's layout, as checkpoints before safetensors hold it (read
+//! for old runs; the writers are kept for the tests) (`bincode::serialize`, the fixint encoding that
 //! `files::save` writes and `files::load` reads), written and read one
 //! field at a time: a length is a little-endian `u64`, a string its bytes, a vector its
 //! values little-endian, one after another. Serialising a struct writes its
@@ -9,14 +10,18 @@
 //! fine grid, a 1.3 GB checkpoint, that copy took about 3 s and the encoding
 //! about as long again.
 
-use std::io::{self, BufRead, Seek, SeekFrom, Write};
+#[cfg(test)]
+use std::io::Write;
+use std::io::{self, BufRead, Seek, SeekFrom};
 
 /// A vector's or string's length, which comes before its values.
+#[cfg(test)]
 pub fn write_len(w: &mut impl Write, len: usize) -> io::Result<()> {
     w.write_all(&(len as u64).to_le_bytes())
 }
 
 /// A string: its length, then its UTF-8 bytes.
+#[cfg(test)]
 pub fn write_str(w: &mut impl Write, s: &str) -> io::Result<()> {
     write_len(w, s.len())?;
     w.write_all(s.as_bytes())
@@ -25,6 +30,7 @@ pub fn write_str(w: &mut impl Write, s: &str) -> io::Result<()> {
 /// `values` without a length (a whole vector is [`write_len`] and then its
 /// values, in as many calls as it has blocks), encoded through `scratch`, a
 /// buffer the caller keeps between blocks.
+#[cfg(test)]
 pub fn write_values<T: Copy, const N: usize>(
     w: &mut impl Write,
     values: &[T],

@@ -18,6 +18,7 @@ pub mod profile;
 pub mod progress;
 pub(crate) mod rng;
 pub(crate) mod rows_op;
+pub mod safetensors;
 pub mod tensor;
 pub mod transfer;
 
