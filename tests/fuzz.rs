@@ -91,11 +91,26 @@ fn headers_claiming_huge_sizes_are_refused_before_allocating() {
     let t = TempDir::new("fuzz-huge");
     let target = fuzz::target("checkpoint", t.path(), None).unwrap();
     let file = t.path().join("huge.bin");
-    // After the 8-byte magic: the metadata string's length, its text, then the coordinates' length.
-    let meta_len = u64::from_le_bytes(target.seeds[0][8..16].try_into().unwrap()) as usize;
-    for length_at in [8, 16 + meta_len] {
-        let mut bytes = target.seeds[0].clone();
-        bytes[length_at..length_at + 8].copy_from_slice(&1_000_000_000_000u64.to_le_bytes());
+    // A safetensors checkpoint: the header's length, a tensor's shape, and
+    // the lattice the metadata claims, each 10^12 or more.
+    let seed = &target.seeds[0];
+    let n = u64::from_le_bytes(seed[..8].try_into().unwrap()) as usize;
+    let header: serde_json::Value = serde_json::from_slice(&seed[8..8 + n]).unwrap();
+    let rewrite = |edit: &dyn Fn(&mut serde_json::Value)| {
+        let mut h = header.clone();
+        edit(&mut h);
+        let text = serde_json::to_vec(&h).unwrap();
+        [&(text.len() as u64).to_le_bytes()[..], &text, &seed[8 + n..]].concat()
+    };
+    let mut long_header = seed.clone();
+    long_header[..8].copy_from_slice(&1_000_000_000_000u64.to_le_bytes());
+    let huge_shape = rewrite(&|h| h["sh"]["shape"] = serde_json::json!([1_000_000, 1_000_000]));
+    let huge_lattice = rewrite(&|h| {
+        let meta = h["__metadata__"]["meta"].as_str().unwrap().replace("[4,4,4]", "[100000,100000,100000]");
+        assert!(meta.contains("100000"), "the seed's lattice is 4x4x4");
+        h["__metadata__"]["meta"] = serde_json::Value::String(meta);
+    });
+    for bytes in [long_header, huge_shape, huge_lattice] {
         std::fs::write(&file, &bytes).unwrap();
         let e =
             format!("{:#}", refnpr::field::checkpoint::load(&file, &refnpr::BackendKind::Flex.device()).err().unwrap());
