@@ -340,7 +340,7 @@ enum Command {
         run: PathBuf,
         #[arg(long, value_enum)]
         format: ExportFormat,
-        /// Output file (default: RUN/splats.ply, mesh.glb, path.mp4 or points.ply).
+        /// Output file (default: RUN/splats.ply, mesh.glb, path.mp4, points.ply or cameras.json).
         #[arg(long)]
         out: Option<PathBuf>,
         /// Splats: the SH degree written (default: the field's).
@@ -359,7 +359,7 @@ enum Command {
         /// without compensating (0.3 for 3DGS-style viewers), at the training views' resolution; 0: off.
         #[arg(long, default_value_t = 0.0)]
         viewer_blur: f32,
-        /// Mesh: the density level of the surface (default: where one voxel absorbs half the light).
+        /// Mesh: the density level of the surface (default: where four voxels absorb half the light).
         #[arg(long)]
         level: Option<f32>,
         /// Video: the camera path.
@@ -379,7 +379,7 @@ enum Command {
         /// Points: every N-th pixel of the training views along both axes.
         #[arg(long, default_value_t = 2)]
         stride: usize,
-        /// Dataset folder (default: the one the run was trained on); video and points only.
+        /// Dataset folder (default: the one the run was trained on); read for video, points, cameras and --viewer-blur.
         #[arg(long)]
         data: Option<PathBuf>,
         #[arg(long, value_enum)]
@@ -669,11 +669,7 @@ fn run_export(command: Command, progress: &Console) -> Result<()> {
     };
     let options = ExportOptions { splat, level, path, frames, fps, width, ffmpeg, stride };
     let dataset = if export::needs_dataset(format, &options) {
-        let dir = data.unwrap_or_else(|| ck.meta.data_dir.clone());
-        Some(
-            data::load(&dir, &ck.meta.data)
-                .with_context(|| format!("loading the run's dataset {} (pass --data to use another)", dir.display()))?,
-        )
+        Some(checkpoint::load_dataset(&ck, data.as_deref())?)
     } else {
         None
     };

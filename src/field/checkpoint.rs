@@ -323,8 +323,13 @@ pub fn load_run(
     device: &Device,
 ) -> Result<(Checkpoint, crate::scene::data::Dataset)> {
     let ck = load_with(path, device, false)?;
-    let dir = data.map(Path::to_path_buf).unwrap_or_else(|| ck.meta.data_dir.clone());
-    let dataset = crate::scene::data::load(&dir, &ck.meta.data)
-        .with_context(|| format!("loading the run's dataset {} (pass --data to use another)", dir.display()))?;
+    let dataset = load_dataset(&ck, data)?;
     Ok((ck, dataset))
+}
+
+/// The dataset `ck` was trained on (or `data`, when given), read the way the run read it.
+pub fn load_dataset(ck: &Checkpoint, data: Option<&Path>) -> Result<crate::scene::data::Dataset> {
+    let dir = data.map(Path::to_path_buf).unwrap_or_else(|| ck.meta.data_dir.clone());
+    crate::scene::data::load(&dir, &ck.meta.data)
+        .with_context(|| format!("loading the run's dataset {} (pass --data to use another)", dir.display()))
 }

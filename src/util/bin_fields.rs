@@ -20,29 +20,12 @@ pub fn write_len(w: &mut impl Write, len: usize) -> io::Result<()> {
     w.write_all(&(len as u64).to_le_bytes())
 }
 
-/// A string: its length, then its UTF-8 bytes.
+/// A string: its length, then its UTF-8 bytes. (A vector's values follow
+/// its length as `safetensors::write_values` writes them.)
 #[cfg(test)]
 pub fn write_str(w: &mut impl Write, s: &str) -> io::Result<()> {
     write_len(w, s.len())?;
     w.write_all(s.as_bytes())
-}
-
-/// `values` without a length (a whole vector is [`write_len`] and then its
-/// values, in as many calls as it has blocks), encoded through `scratch`, a
-/// buffer the caller keeps between blocks.
-#[cfg(test)]
-pub fn write_values<T: Copy, const N: usize>(
-    w: &mut impl Write,
-    values: &[T],
-    to_le_bytes: fn(T) -> [u8; N],
-    scratch: &mut Vec<u8>,
-) -> io::Result<()> {
-    scratch.clear();
-    scratch.resize(values.len() * N, 0);
-    for (bytes, &v) in scratch.chunks_exact_mut(N).zip(values) {
-        bytes.copy_from_slice(&to_le_bytes(v));
-    }
-    w.write_all(scratch)
 }
 
 /// Bytes read at a time into a vector.
@@ -121,6 +104,8 @@ impl<R: BufRead + Seek> FieldReader<R> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    // A vector's values are the same little-endian run in both layouts.
+    use crate::util::safetensors::write_values;
     use serde::Serialize;
 
     #[derive(Serialize)]
