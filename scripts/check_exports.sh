@@ -4,7 +4,8 @@
 #     (@mkkellogg/gaussian-splats-3d on three.js) in headless Chromium, shot
 #     at the run's test cameras and compared with `refnpr render`;
 #   - the glb mesh in three.js's GLTFLoader, shot the same way, and read by
-#     trimesh (counts, watertight, outward, coloured).
+#     trimesh (counts, watertight, outward, coloured); the same for the mesh
+#     simplified to a tenth of its triangles.
 #   bash scripts/check_exports.sh REFNPR_BINARY RUN [RUN ...]
 # Each RUN is a fitted run folder (photoreal or stylized). Fails when a
 # viewer cannot open a file or a screenshot is below the floors below.
@@ -49,4 +50,13 @@ for RUN in "$@"; do
   python3 scripts/browser/compare.py "$d/mesh" "$d/render/rgb" --json "$d/mesh.json" | tail -1
   mean="$(above "$d/mesh.json" $MESH_FLOOR)" || { echo "error: $name: mesh in three.js: $mean, below the floor $MESH_FLOOR" >&2; exit 1; }
   echo "$name: mesh in three.js GLTFLoader: $mean (floor $MESH_FLOOR)"
+  # Simplified to a tenth: still closed, still in place.
+  summary="$("$BIN" export "$RUN" --format mesh --out "$d/small.glb" --max-triangles $((counts[1] / 10)))"
+  echo "$summary"
+  small=($(echo "$summary" | sed -E 's/.*\(([0-9]+) vertices, ([0-9]+) triangles.*/\1 \2/'))
+  python3 scripts/check_mesh.py "$d/small.glb" "${small[0]}" "${small[1]}"
+  node scripts/browser/shoot.mjs mesh "$d/small.glb" "$d/cameras.json" "$d/small"
+  python3 scripts/browser/compare.py "$d/small" "$d/render/rgb" --json "$d/small.json" | tail -1
+  mean="$(above "$d/small.json" $MESH_FLOOR)" || { echo "error: $name: simplified mesh in three.js: $mean, below the floor $MESH_FLOOR" >&2; exit 1; }
+  echo "$name: mesh simplified to a tenth in three.js GLTFLoader: $mean (floor $MESH_FLOOR)"
 done

@@ -140,6 +140,16 @@ fn the_mesh_is_a_closed_coloured_surface_in_glb_and_ply() {
 
     let (ok, log) = export(run, "mesh", &t.path().join("m.obj"), &[]);
     assert!(!ok && log.contains(".glb or .ply"), "{log}");
+
+    // Simplified to a quarter: still closed, within the budget.
+    let small = t.path().join("small.ply");
+    let (ok, log) = export(run, "mesh", &small, &["--max-triangles", &(nf / 4).to_string()]);
+    assert!(ok, "{log}");
+    let (header, _) = read_ply(&small);
+    let small_faces = element_count(&header, "face");
+    assert!(small_faces <= nf / 4 && small_faces > nf / 8, "{small_faces} of {nf}");
+    let (ok, log) = export(run, "mesh", &small, &["--max-triangles", "3"]);
+    assert!(!ok && log.contains("4 or more"), "{log}");
 }
 
 #[test]

@@ -362,6 +362,9 @@ enum Command {
         /// Mesh: the density level of the surface (default: where four voxels absorb half the light).
         #[arg(long)]
         level: Option<f32>,
+        /// Mesh: simplify to at most this many triangles (quadric edge collapse; the surface stays closed).
+        #[arg(long)]
+        max_triangles: Option<usize>,
         /// Video: the camera path.
         #[arg(long, value_enum, default_value_t = PathKind::Orbit)]
         path: PathKind,
@@ -644,6 +647,7 @@ fn run_export(command: Command, progress: &Console) -> Result<()> {
         splat_scale,
         viewer_blur,
         level,
+        max_triangles,
         path,
         frames,
         fps,
@@ -667,7 +671,7 @@ fn run_export(command: Command, progress: &Console) -> Result<()> {
         viewer_blur,
         ..Default::default()
     };
-    let options = ExportOptions { splat, level, path, frames, fps, width, ffmpeg, stride };
+    let options = ExportOptions { splat, level, max_triangles, path, frames, fps, width, ffmpeg, stride };
     let dataset = if export::needs_dataset(format, &options) {
         Some(checkpoint::load_dataset(&ck, data.as_deref())?)
     } else {

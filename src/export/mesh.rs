@@ -138,7 +138,7 @@ pub fn mesh_of(grid: &RadianceGrid, ndc: Option<&NdcParams>, level: f32) -> Resu
 
 /// Places the lattice-coordinate vertices in the world (through the NDC
 /// warp when there is one: triangles at the far plane are dropped), colours
-/// them, and computes the normals.
+/// them, and sets the normals.
 fn to_world(grid: &RadianceGrid, ndc: Option<&NdcParams>, lattice: &[Vec3], mesh: &mut Mesh) {
     let geo = grid.geometry;
     let nb = grid.num_basis();
@@ -154,6 +154,11 @@ fn to_world(grid: &RadianceGrid, ndc: Option<&NdcParams>, lattice: &[Vec3], mesh
     }
     mesh.triangles.retain(|t| t.iter().all(|&v| world[v as usize].is_some()));
     mesh.positions = world.into_iter().map(|p| p.unwrap_or(Vec3::ZERO)).collect();
+    set_normals(mesh);
+}
+
+/// Each vertex's normal: the area-weighted mean of its triangles' normals.
+pub fn set_normals(mesh: &mut Mesh) {
     mesh.normals = vec![Vec3::ZERO; mesh.positions.len()];
     for t in &mesh.triangles {
         let [a, b, c] = t.map(|v| mesh.positions[v as usize]);

@@ -1,9 +1,10 @@
 //! Results out: a run's field in the formats other tools open. Gaussian
 //! splats (`splat`, the 3DGS PLY), the density's iso-surface as a coloured
-//! mesh (`mesh`, written as glb by `gltf` and as PLY), a camera path as an
-//! MP4 (`video`, through ffmpeg) and the surface as coloured points
-//! (`points`). Every file is written atomically.
+//! mesh (`mesh`, simplified by `decimate`, written as glb by `gltf` and as
+//! PLY), a camera path as an MP4 (`video`, through ffmpeg) and the surface
+//! as coloured points (`points`). Every file is written atomically.
 
+pub mod decimate;
 pub mod gltf;
 pub mod mesh;
 pub mod ply;
@@ -60,6 +61,8 @@ pub struct ExportOptions {
     pub splat: splat::SplatOptions,
     /// The mesh's density level (None: `mesh::default_level`).
     pub level: Option<f32>,
+    /// The mesh's most triangles (None: the iso-surface as marched).
+    pub max_triangles: Option<usize>,
     /// The video's camera path, frame count and rate, and its width
     /// (None: the dataset's; the height follows the aspect).
     pub path: PathKind,
@@ -77,6 +80,7 @@ impl Default for ExportOptions {
         Self {
             splat: splat::SplatOptions::default(),
             level: None,
+            max_triangles: None,
             path: PathKind::Orbit,
             frames: 120,
             fps: 30,
@@ -135,7 +139,13 @@ pub fn export(
         }
         Format::Mesh => {
             let level = options.level.unwrap_or_else(|| mesh::default_level(&ck.grid, ndc));
-            let m = mesh::mesh_of(&ck.grid, ndc, level)?;
+            let mut m = mesh::mesh_of(&ck.grid, ndc, level)?;
+            if let Some(target) = options.max_triangles {
+                if target < 4 {
+                    bail!("a mesh of at most {target} triangles cannot enclose anything: ask for 4 or more");
+                }
+                m = decimate::decimate(&m, target);
+            }
             match extension(out).as_str() {
                 "glb" => files::write_atomic(out, |w| gltf::write_glb(&m, w))?,
                 "ply" => write_ply(out, &mesh::to_ply(&m, &source))?,
