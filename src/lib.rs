@@ -12,6 +12,7 @@
 //! | `stylize` | stage 3: Ref-NPR (R³ + TCM + colour matching) and the ARF baseline: config, losses, TCM, the style field, the sample cache, the step (`StyleStep`), the guides, the run (the loops) |
 //! | `eval` | the stylization metrics (Ref-LPIPS, ground-truth PSNR, warp stability, speckle) |
 //! | `export` | results out: Gaussian splats (3DGS PLY), the iso-surface as a coloured mesh (glb, PLY), MP4 through ffmpeg, surface points |
+//! | `view` | the browser viewer: the field packed as WebGL2 textures, the page (HTML, JavaScript, GLSL), the local server, the static copy |
 //! | `tools` | `capture` (photos to a dataset through COLMAP), the benchmarks, the one-command demo, the robustness study, the fuzzer, the painterly repaint filter |
 //! | `notebook` | the front API: one type per stage whose values display in a Jupyter cell (evcxr) |
 //!
@@ -49,6 +50,7 @@ pub mod stylize;
 pub mod tools;
 pub mod util;
 pub mod vgg;
+pub mod view;
 
 #[cfg(test)]
 mod test_support;

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result, ensure};
+use anyhow::{Context, Result, bail, ensure};
 use clap::parser::ValueSource;
 use clap::{ArgMatches, CommandFactory, FromArgMatches, Parser, Subcommand};
 use refnpr::eval::stylization::{EvalJob, RobustnessViews};
@@ -334,6 +334,27 @@ enum Command {
         #[arg(long)]
         steps: Option<usize>,
     },
+    /// Shows runs in the browser: a local page that ray-marches the field in WebGL2 as refnpr renders it,
+    /// reloading a run whose checkpoint changes (a fit or a stylization in progress).
+    View {
+        /// Run folders (or checkpoint files), photoreal or stylized: the page shows one and compares two.
+        #[arg(required = true)]
+        runs: Vec<PathBuf>,
+        /// The port (0: any free one).
+        #[arg(long, default_value_t = 8008)]
+        port: u16,
+        /// The address to listen on. Anything but 127.0.0.1 lets other machines see the runs.
+        #[arg(long, default_value = "127.0.0.1")]
+        host: String,
+        /// Write a self-contained folder (the page and the runs' data) for any static web host, and stop.
+        #[arg(long = "static", value_name = "DIR")]
+        static_dir: Option<PathBuf>,
+        /// Dataset folder for the cameras list (default: the one each run was trained on).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        #[arg(long, value_enum)]
+        backend: Option<BackendKind>,
+    },
     /// Exports a run's field for other tools: Gaussian splats (3DGS PLY), a coloured mesh (glb or PLY), an MP4, surface points.
     Export {
         /// Run folder (or checkpoint file), photoreal or stylized.
@@ -529,6 +550,9 @@ fn run() -> Result<()> {
             run_train(&data, &out, config.as_deref(), backend_or_env(backend, &progress)?, resume, steps, &progress)
         }
         Command::Export { .. } => run_export(cli.command, &progress),
+        Command::View { runs, port, host, static_dir, data, backend } => {
+            run_view(&runs, port, &host, static_dir.as_deref(), data.as_deref(), backend, &progress)
+        }
         Command::Render { ckpt, path, out, frames, data, backend } => {
             run_render(&ckpt, path, &out, frames, data.as_deref(), backend, &progress)
         }
@@ -632,6 +656,47 @@ fn run_render(
     let cams = render_path::path_cameras(&dataset, path, frames)?;
     render_path::render_frames(&ck, &cams, out, progress)?;
     println!("rendered {} frames to {}", cams.len(), out.display());
+    Ok(())
+}
+
+/// `refnpr view`.
+fn run_view(
+    paths: &[PathBuf],
+    port: u16,
+    host: &str,
+    static_dir: Option<&Path>,
+    data: Option<&Path>,
+    backend: Option<BackendKind>,
+    progress: &Console,
+) -> Result<()> {
+    let device = backend_or_env(backend, progress)?.device();
+    let mut runs = Vec::new();
+    for path in paths {
+        let run = refnpr::view::ViewRun::new(path, data);
+        if !run.checkpoint.is_file() {
+            bail!("{}: no checkpoint here (expected {})", path.display(), run.checkpoint.display());
+        }
+        runs.push(run);
+    }
+    if let Some(dir) = static_dir {
+        let bytes = refnpr::view::write_static(&runs, dir, &device)?;
+        println!(
+            "wrote {} ({:.1} MB): serve it with any static web server, e.g. `python3 -m http.server -d {}`",
+            dir.display(),
+            bytes as f64 / 1e6,
+            dir.display()
+        );
+        return Ok(());
+    }
+    let listener = std::net::TcpListener::bind((host, port)).with_context(|| {
+        format!("cannot listen on {host}:{port} (in use? pick another with --port, or --port 0 for any)")
+    })?;
+    let address = listener.local_addr()?;
+    if !address.ip().is_loopback() {
+        eprintln!("WARNING: listening on {address}: every machine that can reach it can see these runs (read-only)");
+    }
+    println!("serving {} run(s) at http://{address}/ (Ctrl-C stops)", runs.len());
+    refnpr::view::server::serve(listener, refnpr::view::server::Site::new(runs, device, true));
     Ok(())
 }
 

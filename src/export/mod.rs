@@ -190,7 +190,7 @@ pub fn export(
 /// name, size, pinhole intrinsics in pixels and the camera-to-world matrix
 /// as 16 numbers, column-major (OpenGL convention: x right, y up, looking
 /// down -z, as three.js and Blender; world units of the run's field).
-fn cameras_json(dataset: &Dataset, ck: &Checkpoint) -> serde_json::Value {
+pub fn cameras_json(dataset: &Dataset, ck: &Checkpoint) -> serde_json::Value {
     let views = |views: &[crate::scene::data::View]| -> Vec<serde_json::Value> {
         views
             .iter()

@@ -1,0 +1,88 @@
+// The viewer check: opens `refnpr view`'s page (served by refnpr, or a static
+// copy behind any file server) in headless Chromium, shoots it at the run's
+// test cameras (`refnpr export --format cameras`) and writes one PNG per
+// camera for compare.py; prints the page's load time, GPU bytes and the time
+// of an 800x800 frame.
+//
+//   node view.mjs URL CAMERAS.json OUT_DIR [--run N] [--views N] [--frame-size 800]
+//                 [--live NEW_CHECKPOINT SERVED_CHECKPOINT] [--chromium PATH]
+//
+// --live: after the shots, NEW_CHECKPOINT replaces SERVED_CHECKPOINT (copied
+// beside it, then renamed, as refnpr writes checkpoints); the page must
+// notice and reload the run, and is shot again into OUT_DIR/live.
+import fs from 'node:fs';
+import path from 'node:path';
+import puppeteer from 'puppeteer-core';
+
+const args = process.argv.slice(2);
+const take = (name, count) => {
+  const i = args.indexOf(name);
+  if (i < 0) return null;
+  return args.splice(i, count + 1).slice(1);
+};
+const views = Number((take('--views', 1) || ['0'])[0]);
+const run = Number((take('--run', 1) || ['0'])[0]);
+const frameSize = Number((take('--frame-size', 1) || ['800'])[0]);
+const live = take('--live', 2);
+const chromium = (take('--chromium', 1) || [process.env.CHROMIUM || '/usr/bin/chromium'])[0];
+const [url, camerasPath, outDir] = args;
+if (!outDir) {
+  console.error('usage: node view.mjs URL CAMERAS.json OUT_DIR [--views N] [--frame-size N] [--live NEW OLD]');
+  process.exit(2);
+}
+const cameras = JSON.parse(fs.readFileSync(camerasPath, 'utf8'));
+const chosen = cameras.test.map((c, i) => [i, c])
+  .filter(([i]) => !(views > 0) || i % Math.ceil(cameras.test.length / views) === 0);
+
+async function shootAll(page, dir) {
+  fs.mkdirSync(dir, { recursive: true });
+  for (const [i, cam] of chosen) {
+    const data = await page.evaluate(c => window.refnpr.shoot(c), cam);
+    fs.writeFileSync(path.join(dir, `${String(i).padStart(4, '0')}.png`), Buffer.from(data.split(',')[1], 'base64'));
+  }
+}
+
+const browser = await puppeteer.launch({
+  executablePath: chromium,
+  headless: true,
+  args: ['--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader', '--ignore-gpu-blocklist'],
+});
+let failed = false;
+try {
+  const page = await browser.newPage();
+  page.on('pageerror', e => { failed = true; console.error('page error:', e.message); });
+  page.on('console', m => { if (m.type() === 'error') { failed = true; console.error('page console:', m.text()); } });
+  await page.setViewport({ width: 1000, height: 1000 });
+  const started = Date.now();
+  await page.goto(url);
+  await page.waitForFunction('window.refnpr !== undefined', { timeout: 60000 });
+  await page.evaluate(() => window.refnpr.ready.then(() => true));
+  await page.evaluate(i => window.refnpr.show(i), run);
+  const loaded = (Date.now() - started) / 1000;
+  await shootAll(page, outDir);
+  // One frame at frameSize x frameSize from the first test camera (intrinsics scaled), timed.
+  const frameMs = await page.evaluate((cam, size) => {
+    const s = size / cam.width;
+    const big = { ...cam, width: size, height: Math.round(cam.height * s), fx: cam.fx * s, fy: cam.fy * s, cx: cam.cx * s, cy: cam.cy * s };
+    window.refnpr.shoot(big); // warm
+    const t = performance.now();
+    window.refnpr.shoot(big);
+    return performance.now() - t;
+  }, chosen[0][1], frameSize);
+  const gpuBytes = await page.evaluate(i => window.refnpr.viewer.runs[i].bytes, run);
+  const stats = { load_seconds: loaded, gpu_bytes: gpuBytes, frame_ms: frameMs, frame_size: frameSize, views: chosen.length };
+  if (live) {
+    const [fresh, served] = live;
+    const temporary = `${served}.viewcheck.tmp`;
+    fs.copyFileSync(fresh, temporary);
+    fs.renameSync(temporary, served);
+    const t = Date.now();
+    await page.waitForFunction('window.refnpr.viewer.reloads >= 1', { timeout: 120000, polling: 200 });
+    stats.live_reload_seconds = (Date.now() - t) / 1000;
+    await shootAll(page, path.join(outDir, 'live'));
+  }
+  console.log(JSON.stringify(stats));
+} finally {
+  await browser.close();
+}
+if (failed) process.exit(1);

@@ -1,0 +1,206 @@
+//! A field packed for a WebGL2 page: the sparse lattice as bricks of 8³
+//! lattice points in a 3D texture atlas, found through an index texture of
+//! one entry per brick.
+//!
+//! Bytes per occupied brick point: 4 (density, f32, exact) + 8 per four SH
+//! coefficients (f16: 2 bytes for SH degree 0's three, 56 for degree 2's
+//! 27, as RGBA16F texels). An f16 coefficient is off by at most 1/2048 of
+//! its size, far below what an 8-bit screenshot resolves; density stays f32
+//! because transmittance compounds its error along the ray. The index also
+//! says which bricks the page may skip whole: those whose 9³ closure (the
+//! brick and the lattice points its cells reach in the next bricks) has no
+//! point of positive density, the condition refnpr's own march skips dead
+//! blocks on when it renders a checkpoint, so no sample that could count is
+//! skipped.
+
+use serde::{Deserialize, Serialize};
+
+use crate::field::checkpoint::Checkpoint;
+use crate::field::grid::GridGeometry;
+use crate::field::march::{ColourCorners, MarchParams};
+use crate::scene::camera::NdcParams;
+use crate::scene::sh;
+use anyhow::{Result, bail};
+
+/// Lattice points along a brick's side.
+pub const BRICK: usize = 8;
+/// Bricks along each side of the atlas at most: 32 x 8 = 256 texels, the
+/// 3D texture size every WebGL2 implementation supports.
+const ATLAS_BRICKS: usize = 32;
+/// A density no fitted field has: marks a brick's inactive lattice points
+/// (they count as zero density and carry no colour, as in the march).
+pub const INACTIVE: f32 = -3.0e38;
+/// Index entries: a brick's atlas slot (>= 0), or one of these, or
+/// `-(slot + 3)` for a brick whose data neighbouring cells read but whose
+/// own cells a ray may skip (`skip_entry`).
+pub const EMPTY_NEAR_MATTER: i32 = -1;
+pub const EMPTY_SKIP: i32 = -2;
+
+/// The entry of a brick at `slot` that rays skip.
+pub fn skip_entry(slot: usize) -> i32 {
+    -(slot as i32) - 3
+}
+
+/// What the page needs to know about a packed field (`field.json`).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct FieldHeader {
+    pub geometry: GridGeometry,
+    pub sh_degree: u32,
+    pub ndc: Option<NdcParams>,
+    pub background: [f32; 3],
+    /// Step (lattice units), density threshold, stop threshold.
+    pub step: f32,
+    pub sigma_threshold: f32,
+    pub stop_threshold: f32,
+    /// Colour interpolation over active corners only (refnpr's default).
+    pub renormalised_colour: bool,
+    /// Bricks along x, y, z of the lattice (the index texture's size).
+    pub blocks: [usize; 3],
+    /// Bricks along x, y, z of the atlas (its texture size / 8).
+    pub atlas: [usize; 3],
+    pub slots: usize,
+    /// RGBA16F textures of SH coefficients (coefficient j: texture j / 4,
+    /// channel j % 4; j = channel * basis + basis function, refnpr's row).
+    pub sh_textures: usize,
+    /// The checkpoint's step and fingerprint (the page reloads when they change).
+    pub checkpoint_step: usize,
+    pub fingerprint: String,
+    /// Byte lengths of the three parts of `field.bin`, in order.
+    pub index_bytes: usize,
+    pub density_bytes: usize,
+    pub sh_bytes: usize,
+}
+
+/// A packed field: its header and `field.bin` (index as i32, density as
+/// f32, SH as f16 bits, all little-endian, x fastest in every texture).
+pub struct PackedField {
+    pub header: FieldHeader,
+    pub bytes: Vec<u8>,
+}
+
+/// Packs `ck`'s field (refused when it needs a bigger atlas than WebGL2
+/// guarantees).
+pub fn pack(ck: &Checkpoint) -> Result<PackedField> {
+    let grid = &ck.grid;
+    let geo = grid.geometry;
+    let blocks = geo.res.map(|r| r.div_ceil(BRICK));
+    let block_of = |b: [usize; 3]| (b[2] * blocks[1] + b[1]) * blocks[0] + b[0];
+    let nblocks = blocks.iter().product::<usize>();
+    // Bricks with an active point, and with a point of positive density: a
+    // sample whose cell's closure has none has density <= 0 and is dropped
+    // (the density is frozen in a view, as in refnpr's checkpoint renders).
+    let (mut occupied, mut alive) = (vec![false; nblocks], vec![false; nblocks]);
+    for (flat, &row) in grid.links.iter().enumerate() {
+        if row >= 0 {
+            let b = block_of(geo.unflat(flat).map(|v| v / BRICK));
+            occupied[b] = true;
+            alive[b] |= grid.density_cpu[row as usize] > 0.0;
+        }
+    }
+    let mut index = vec![EMPTY_SKIP; nblocks];
+    let mut slots = Vec::new(); // slot -> block coordinates
+    for bz in 0..blocks[2] {
+        for by in 0..blocks[1] {
+            for bx in 0..blocks[0] {
+                let b = [bx, by, bz];
+                let f = block_of(b);
+                let reached = closure_any(&alive, blocks, b, block_of);
+                if occupied[f] {
+                    index[f] = if reached { slots.len() as i32 } else { skip_entry(slots.len()) };
+                    slots.push(b);
+                } else if reached {
+                    index[f] = EMPTY_NEAR_MATTER;
+                }
+            }
+        }
+    }
+    let atlas = atlas_size(slots.len())?;
+    let (density, sh_bits, sh_textures) = fill_atlas(ck, &slots, atlas);
+    let MarchParams { step, sigma_threshold, stop_threshold, colour_corners, .. } = ck.meta.render.march;
+    let header = FieldHeader {
+        geometry: geo,
+        sh_degree: grid.sh_degree,
+        ndc: ck.meta.ndc,
+        background: ck.meta.background,
+        step,
+        sigma_threshold,
+        stop_threshold,
+        renormalised_colour: colour_corners == ColourCorners::Renormalised,
+        blocks,
+        atlas,
+        slots: slots.len(),
+        sh_textures,
+        checkpoint_step: ck.meta.step,
+        fingerprint: format!("{:016x}", ck.fingerprint()),
+        index_bytes: index.len() * 4,
+        density_bytes: density.len() * 4,
+        sh_bytes: sh_bits.len() * 2,
+    };
+    let mut bytes = Vec::with_capacity(header.index_bytes + header.density_bytes + header.sh_bytes);
+    index.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+    density.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+    sh_bits.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+    Ok(PackedField { header, bytes })
+}
+
+/// Whether brick `b` or a brick after it along any axes (the lattice points
+/// its cells reach) is flagged in `flags`.
+fn closure_any(flags: &[bool], blocks: [usize; 3], b: [usize; 3], block_of: impl Fn([usize; 3]) -> usize) -> bool {
+    (0..8).any(|o: usize| {
+        let n = [b[0] + (o >> 2 & 1), b[1] + (o >> 1 & 1), b[2] + (o & 1)];
+        (0..3).all(|a| n[a] < blocks[a]) && flags[block_of(n)]
+    })
+}
+
+/// The atlas's bricks per side for `slots` bricks.
+fn atlas_size(slots: usize) -> Result<[usize; 3]> {
+    let ax = slots.clamp(1, ATLAS_BRICKS);
+    let ay = slots.div_ceil(ax).clamp(1, ATLAS_BRICKS);
+    let az = slots.div_ceil(ax * ay).max(1);
+    if az > ATLAS_BRICKS {
+        bail!(
+            "the field has {slots} occupied 8³ bricks; the viewer holds at most {} (a 256³ texture atlas): \
+             prune the field or fit a coarser lattice",
+            ATLAS_BRICKS.pow(3)
+        );
+    }
+    Ok([ax, ay, az])
+}
+
+/// The atlas textures: density (INACTIVE at empty points) and the SH
+/// coefficients as f16 bits, RGBA per texel, `textures` of them.
+fn fill_atlas(ck: &Checkpoint, slots: &[[usize; 3]], atlas: [usize; 3]) -> (Vec<f32>, Vec<u16>, usize) {
+    let grid = &ck.grid;
+    let geo = grid.geometry;
+    let stride = 3 * sh::num_basis(grid.sh_degree);
+    let textures = stride.div_ceil(4);
+    let size = atlas.map(|a| a * BRICK);
+    let texels = size.iter().product::<usize>();
+    let mut density = vec![INACTIVE; texels];
+    let mut sh_bits = vec![0u16; textures * texels * 4];
+    let sh_rows = grid.sh_cpu();
+    for (slot, b) in slots.iter().enumerate() {
+        let origin = [slot % atlas[0], (slot / atlas[0]) % atlas[1], slot / (atlas[0] * atlas[1])].map(|s| s * BRICK);
+        for k in 0..BRICK {
+            for j in 0..BRICK {
+                for i in 0..BRICK {
+                    let p = [b[0] * BRICK + i, b[1] * BRICK + j, b[2] * BRICK + k];
+                    if (0..3).any(|a| p[a] >= geo.res[a]) {
+                        continue;
+                    }
+                    let row = grid.links[geo.flat(p[0], p[1], p[2])];
+                    if row < 0 {
+                        continue;
+                    }
+                    let t = ((origin[2] + k) * size[1] + origin[1] + j) * size[0] + origin[0] + i;
+                    density[t] = grid.density_cpu[row as usize];
+                    let coefficients = &sh_rows[row as usize * stride..(row as usize + 1) * stride];
+                    for (c, &v) in coefficients.iter().enumerate() {
+                        sh_bits[((c / 4) * texels + t) * 4 + c % 4] = half::f16::from_f32(v).to_bits();
+                    }
+                }
+            }
+        }
+    }
+    (density, sh_bits, textures)
+}
