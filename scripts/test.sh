@@ -42,6 +42,8 @@ test -s target/example-orbit/orbit/path.gif
 echo "== exports in other tools: splats in a browser splat renderer, the mesh in three.js and trimesh (the example's runs)"
 BIN="target/${CARGO_BUILD_TARGET:+$CARGO_BUILD_TARGET/}debug/refnpr"
 bash scripts/check_exports.sh "$BIN" target/example-orbit/photo target/example-orbit/stylized
+echo "== refnpr view in a browser: the page against refnpr render, the static copy, a live reload (the example's runs)"
+bash scripts/check_view.sh "$BIN" target/example-orbit/stylized target/example-orbit/photo
 echo "== checkpoints read without refnpr (Python's safetensors and numpy)"
 python3 scripts/check_checkpoint.py target/example-orbit/photo/checkpoint.bin target/example-orbit/stylized/checkpoint.bin
 

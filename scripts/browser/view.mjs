@@ -4,7 +4,7 @@
 // camera for compare.py; prints the page's load time, GPU bytes and the time
 // of an 800x800 frame.
 //
-//   node view.mjs URL CAMERAS.json OUT_DIR [--run N] [--views N] [--frame-size 800]
+//   node view.mjs URL CAMERAS.json OUT_DIR [--run N] [--views N] [--frame-size 800 (0: not timed)]
 //                 [--live NEW_CHECKPOINT SERVED_CHECKPOINT] [--chromium PATH]
 //
 // --live: after the shots, NEW_CHECKPOINT replaces SERVED_CHECKPOINT (copied
@@ -61,7 +61,7 @@ try {
   const loaded = (Date.now() - started) / 1000;
   await shootAll(page, outDir);
   // One frame at frameSize x frameSize from the first test camera (intrinsics scaled), timed.
-  const frameMs = await page.evaluate((cam, size) => {
+  const frameMs = frameSize <= 0 ? null : await page.evaluate((cam, size) => {
     const s = size / cam.width;
     const big = { ...cam, width: size, height: Math.round(cam.height * s), fx: cam.fx * s, fy: cam.fy * s, cx: cam.cx * s, cy: cam.cy * s };
     window.refnpr.shoot(big); // warm

@@ -16,7 +16,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::field::checkpoint::Checkpoint;
-use crate::field::grid::GridGeometry;
+use crate::field::grid::{GridGeometry, RadianceGrid};
 use crate::field::march::{ColourCorners, MarchParams};
 use crate::scene::camera::NdcParams;
 use crate::scene::sh;
@@ -78,10 +78,54 @@ pub struct PackedField {
     pub bytes: Vec<u8>,
 }
 
+/// The lattice as the page's textures.
+pub struct Lattice {
+    /// Bricks along x, y, z of the lattice and one index entry per brick.
+    pub blocks: [usize; 3],
+    pub index: Vec<i32>,
+    /// Bricks along x, y, z of the atlas, and the bricks stored.
+    pub atlas: [usize; 3],
+    pub slots: usize,
+    /// One density per atlas texel (`INACTIVE` where no point is).
+    pub density: Vec<f32>,
+    /// `sh_textures` RGBA textures of f16 bits, one after the other.
+    pub sh_bits: Vec<u16>,
+    pub sh_textures: usize,
+}
+
 /// Packs `ck`'s field (refused when it needs a bigger atlas than WebGL2
 /// guarantees).
 pub fn pack(ck: &Checkpoint) -> Result<PackedField> {
-    let grid = &ck.grid;
+    let lattice = pack_lattice(&ck.grid)?;
+    let MarchParams { step, sigma_threshold, stop_threshold, colour_corners, .. } = ck.meta.render.march;
+    let header = FieldHeader {
+        geometry: ck.grid.geometry,
+        sh_degree: ck.grid.sh_degree,
+        ndc: ck.meta.ndc,
+        background: ck.meta.background,
+        step,
+        sigma_threshold,
+        stop_threshold,
+        renormalised_colour: colour_corners == ColourCorners::Renormalised,
+        blocks: lattice.blocks,
+        atlas: lattice.atlas,
+        slots: lattice.slots,
+        sh_textures: lattice.sh_textures,
+        checkpoint_step: ck.meta.step,
+        fingerprint: format!("{:016x}", ck.fingerprint()),
+        index_bytes: lattice.index.len() * 4,
+        density_bytes: lattice.density.len() * 4,
+        sh_bytes: lattice.sh_bits.len() * 2,
+    };
+    let mut bytes = Vec::with_capacity(header.index_bytes + header.density_bytes + header.sh_bytes);
+    lattice.index.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+    lattice.density.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+    lattice.sh_bits.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
+    Ok(PackedField { header, bytes })
+}
+
+/// The index and the atlas of `grid`.
+pub fn pack_lattice(grid: &RadianceGrid) -> Result<Lattice> {
     let geo = grid.geometry;
     let blocks = geo.res.map(|r| r.div_ceil(BRICK));
     let block_of = |b: [usize; 3]| (b[2] * blocks[1] + b[1]) * blocks[0] + b[0];
@@ -115,32 +159,8 @@ pub fn pack(ck: &Checkpoint) -> Result<PackedField> {
         }
     }
     let atlas = atlas_size(slots.len())?;
-    let (density, sh_bits, sh_textures) = fill_atlas(ck, &slots, atlas);
-    let MarchParams { step, sigma_threshold, stop_threshold, colour_corners, .. } = ck.meta.render.march;
-    let header = FieldHeader {
-        geometry: geo,
-        sh_degree: grid.sh_degree,
-        ndc: ck.meta.ndc,
-        background: ck.meta.background,
-        step,
-        sigma_threshold,
-        stop_threshold,
-        renormalised_colour: colour_corners == ColourCorners::Renormalised,
-        blocks,
-        atlas,
-        slots: slots.len(),
-        sh_textures,
-        checkpoint_step: ck.meta.step,
-        fingerprint: format!("{:016x}", ck.fingerprint()),
-        index_bytes: index.len() * 4,
-        density_bytes: density.len() * 4,
-        sh_bytes: sh_bits.len() * 2,
-    };
-    let mut bytes = Vec::with_capacity(header.index_bytes + header.density_bytes + header.sh_bytes);
-    index.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
-    density.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
-    sh_bits.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
-    Ok(PackedField { header, bytes })
+    let (density, sh_bits, sh_textures) = fill_atlas(grid, &slots, atlas);
+    Ok(Lattice { blocks, index, atlas, slots: slots.len(), density, sh_bits, sh_textures })
 }
 
 /// Whether brick `b` or a brick after it along any axes (the lattice points
@@ -169,8 +189,7 @@ fn atlas_size(slots: usize) -> Result<[usize; 3]> {
 
 /// The atlas textures: density (INACTIVE at empty points) and the SH
 /// coefficients as f16 bits, RGBA per texel, `textures` of them.
-fn fill_atlas(ck: &Checkpoint, slots: &[[usize; 3]], atlas: [usize; 3]) -> (Vec<f32>, Vec<u16>, usize) {
-    let grid = &ck.grid;
+fn fill_atlas(grid: &RadianceGrid, slots: &[[usize; 3]], atlas: [usize; 3]) -> (Vec<f32>, Vec<u16>, usize) {
     let geo = grid.geometry;
     let stride = 3 * sh::num_basis(grid.sh_degree);
     let textures = stride.div_ceil(4);
@@ -203,4 +222,82 @@ fn fill_atlas(ck: &Checkpoint, slots: &[[usize; 3]], atlas: [usize; 3]) -> (Vec<
         }
     }
     (density, sh_bits, textures)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::field::grid::sphere_grid;
+
+    /// Every lattice point is found through the index where the page looks
+    /// for it, with its density to the bit and its SH to f16's precision;
+    /// every brick rays skip has no point of positive density within reach.
+    #[test]
+    fn every_point_is_where_the_page_reads_it_and_skips_miss_nothing() {
+        let grid = sphere_grid(20, &Default::default());
+        let lattice = pack_lattice(&grid).unwrap();
+        let geo = grid.geometry;
+        let size = lattice.atlas.map(|a| a * BRICK);
+        let texels = size.iter().product::<usize>();
+        let stride = 3 * sh::num_basis(grid.sh_degree);
+        let sh_rows = grid.sh_cpu();
+        let entry = |p: [usize; 3]| {
+            let b = p.map(|v| v / BRICK);
+            lattice.index[(b[2] * lattice.blocks[1] + b[1]) * lattice.blocks[0] + b[0]]
+        };
+        let (mut active, mut skipped_alive) = (0, 0);
+        for flat in 0..grid.links.len() {
+            let p = geo.unflat(flat);
+            let row = grid.links[flat];
+            let e = entry(p);
+            let slot = if e >= 0 {
+                Some(e as usize)
+            } else if e <= -3 {
+                Some((-e - 3) as usize)
+            } else {
+                None
+            };
+            let Some(slot) = slot else {
+                assert!(row < 0, "an active point in a brick without data at {p:?}");
+                continue;
+            };
+            let a = lattice.atlas;
+            let origin = [slot % a[0], (slot / a[0]) % a[1], slot / (a[0] * a[1])].map(|v| v * BRICK);
+            let t =
+                ((origin[2] + p[2] % BRICK) * size[1] + origin[1] + p[1] % BRICK) * size[0] + origin[0] + p[0] % BRICK;
+            if row < 0 {
+                assert_eq!(lattice.density[t], INACTIVE);
+                continue;
+            }
+            active += 1;
+            let row = row as usize;
+            assert_eq!(lattice.density[t].to_bits(), grid.density_cpu[row].to_bits());
+            for c in 0..stride {
+                let bits = lattice.sh_bits[((c / 4) * texels + t) * 4 + c % 4];
+                let v = sh_rows[row * stride + c];
+                assert!((half::f16::from_bits(bits).to_f32() - v).abs() <= v.abs() / 1024.0 + 1e-7);
+            }
+        }
+        assert_eq!(active, grid.num_rows());
+        // A brick rays skip: no positive density at any point its cells
+        // reach (the brick's 9³ closure).
+        let [bx, by, bz] = lattice.blocks;
+        let mut skipped_bricks = 0;
+        for b in (0..bx * by * bz).map(|f| [f % bx, (f / bx) % by, f / (bx * by)]) {
+            let e = entry(b.map(|v| v * BRICK));
+            if e != EMPTY_SKIP && e > -3 {
+                continue;
+            }
+            skipped_bricks += 1;
+            for o in 0..(BRICK + 1).pow(3) {
+                let q = [b[0] * BRICK + o % 9, b[1] * BRICK + (o / 9) % 9, b[2] * BRICK + o / 81];
+                if (0..3).all(|a| q[a] < geo.res[a]) {
+                    let row = grid.links[geo.flat(q[0], q[1], q[2])];
+                    skipped_alive += usize::from(row >= 0 && grid.density_cpu[row as usize] > 0.0);
+                }
+            }
+        }
+        assert!(skipped_bricks > 0, "the ball's corners are skipped");
+        assert_eq!(skipped_alive, 0, "a brick rays skip holds a point of positive density");
+    }
 }
