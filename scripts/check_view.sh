@@ -5,6 +5,8 @@
 #     cameras: a stylized run (SH 0) and a photoreal one;
 #   - the static copy (`--static DIR`) behind Python's plain file server,
 #     shot again: the same pixels as the served page;
+#   - the controls: a drag moves the view, the camera list shows a dataset
+#     camera exactly, the comparison splits the two runs at the slider;
 #   - live reload: a served run's checkpoint replaced (as a fit in progress
 #     replaces it) must reach the page, which then shows the new field.
 #   bash scripts/check_view.sh REFNPR_BINARY STYLIZED_RUN PHOTO_RUN
@@ -22,17 +24,17 @@ PHOTO_FLOOR=30
 (cd scripts/browser && PUPPETEER_SKIP_DOWNLOAD=1 npm ci --silent --no-audit --no-fund)
 OUT="$(mktemp -d)"
 PIDS=()
-trap 'kill "${PIDS[@]}" 2>/dev/null || true; rm -rf "$OUT"' EXIT
+trap 'kill "${PIDS[@]}" 2>/dev/null || true; wait 2>/dev/null || true; rm -rf "$OUT"' EXIT
 above() { python3 -c "import json,sys; m=json.load(open('$1'))['mean']; print(f'{m:.2f} dB'); sys.exit(0 if m >= $2 else 1)"; }
-# Starts a server in the background and prints its URL once it listens.
+# Starts a server in the background (killed on exit) and sets $url once it
+# listens. Not called in $(...): the server's PID must reach this shell.
 start() {
   local log="$1"; shift
   "$@" >"$log" 2>&1 &
   PIDS+=($!)
   for _ in $(seq 100); do
-    url="$(grep -o 'http://[0-9.:]*/' "$log" || true)"
-    [ -z "$url" ] && url="$(sed -nE 's/.*port ([0-9]+).*/http:\/\/127.0.0.1:\1\//p' "$log" | head -1)"
-    [ -n "$url" ] && { echo "$url"; return; }
+    url="$(grep -o 'http://[0-9.:]*/' "$log" | head -1 || true)"
+    [ -n "$url" ] && return
     sleep 0.2
   done
   echo "error: $* did not start: $(cat "$log")" >&2
@@ -45,18 +47,19 @@ for name in stylized photo; do
   "$BIN" render --ckpt "$run" --path test --out "$OUT/render-$name" >/dev/null
 done
 
-url="$(start "$OUT/server.log" "$BIN" view "$STYLIZED" "$PHOTO" --port 0)"
+start "$OUT/server.log" "$BIN" view "$STYLIZED" "$PHOTO" --port 0
 for i in 0 1; do
   name=stylized; floor=$STYLIZED_FLOOR; size=800
   [ $i = 1 ] && name=photo && floor=$PHOTO_FLOOR && size=0
-  node scripts/browser/view.mjs "$url" "$OUT/cameras.json" "$OUT/shots-$name" --run $i --frame-size $size
+  controls=(); [ $i = 0 ] && controls=(--controls)
+  node scripts/browser/view.mjs "$url" "$OUT/cameras.json" "$OUT/shots-$name" --run $i --frame-size $size "${controls[@]}"
   python3 scripts/browser/compare.py "$OUT/shots-$name" "$OUT/render-$name/rgb" --json "$OUT/$name.json" | tail -1
   mean="$(above "$OUT/$name.json" $floor)" || { echo "error: $name run in refnpr view: $mean, below the floor $floor" >&2; exit 1; }
   echo "$name run in refnpr view: $mean against refnpr render (floor $floor)"
 done
 
 "$BIN" view "$STYLIZED" --static "$OUT/site"
-url="$(start "$OUT/static.log" python3 -u -m http.server --bind 127.0.0.1 --directory "$OUT/site" 0)"
+start "$OUT/static.log" python3 -u -m http.server --bind 127.0.0.1 --directory "$OUT/site" 0
 node scripts/browser/view.mjs "$url" "$OUT/cameras.json" "$OUT/shots-static" --frame-size 0
 python3 scripts/browser/compare.py "$OUT/shots-static" "$OUT/shots-stylized" --json "$OUT/static.json" | tail -1
 mean="$(above "$OUT/static.json" 99)" || { echo "error: the static copy renders other pixels than the served page: $mean" >&2; exit 1; }
@@ -64,7 +67,7 @@ echo "static copy behind a plain file server: the served page's pixels ($mean, 1
 
 mkdir -p "$OUT/live"
 cp "$PHOTO/checkpoint.bin" "$OUT/live/checkpoint.bin"
-url="$(start "$OUT/live.log" "$BIN" view "$OUT/live" --port 0)"
+start "$OUT/live.log" "$BIN" view "$OUT/live" --port 0
 node scripts/browser/view.mjs "$url" "$OUT/cameras.json" "$OUT/shots-live" --frame-size 0 \
   --live "$STYLIZED/checkpoint.bin" "$OUT/live/checkpoint.bin"
 python3 scripts/browser/compare.py "$OUT/shots-live/live" "$OUT/render-stylized/rgb" --json "$OUT/live.json" | tail -1

@@ -4,7 +4,7 @@
 // camera for compare.py; prints the page's load time, GPU bytes and the time
 // of an 800x800 frame.
 //
-//   node view.mjs URL CAMERAS.json OUT_DIR [--run N] [--views N] [--frame-size 800 (0: not timed)]
+//   node view.mjs URL CAMERAS.json OUT_DIR [--run N] [--views N] [--frame-size 800 (0: not timed)] [--controls]
 //                 [--live NEW_CHECKPOINT SERVED_CHECKPOINT] [--chromium PATH]
 //
 // --live: after the shots, NEW_CHECKPOINT replaces SERVED_CHECKPOINT (copied
@@ -24,6 +24,7 @@ const views = Number((take('--views', 1) || ['0'])[0]);
 const run = Number((take('--run', 1) || ['0'])[0]);
 const frameSize = Number((take('--frame-size', 1) || ['800'])[0]);
 const live = take('--live', 2);
+const interact = take('--controls', 0) !== null;
 const chromium = (take('--chromium', 1) || [process.env.CHROMIUM || '/usr/bin/chromium'])[0];
 const [url, camerasPath, outDir] = args;
 if (!outDir) {
@@ -40,6 +41,60 @@ async function shootAll(page, dir) {
     const data = await page.evaluate(c => window.refnpr.shoot(c), cam);
     fs.writeFileSync(path.join(dir, `${String(i).padStart(4, '0')}.png`), Buffer.from(data.split(',')[1], 'base64'));
   }
+}
+
+// --controls: the page's controls as a person uses them (the page must
+// serve two runs): a drag moves the view, the camera list shows the chosen
+// dataset camera exactly, the comparison shows run 0 left of the split and
+// run 1 right of it, the frame-time readout is there. Exits 1 on a failure.
+async function checkControls(page) {
+  const same = (a, b) => a.length === b.length && a.every((v, i) => v === b[i]);
+  const pixels = () => page.evaluate(() => Array.from(window.refnpr.pixels()));
+  const settle = () => page.evaluate(() => new Promise(r => requestAnimationFrame(() => setTimeout(r, 50))));
+  await page.evaluate(() => { window.refnpr.viewer.other = -1; window.refnpr.viewer.shown = 0; });
+  await page.select('#camera', 'test:0');
+  await settle();
+  const start = await pixels();
+  const box = await (await page.$('#view')).boundingBox();
+  await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
+  await page.mouse.down();
+  await page.mouse.move(box.x + box.width / 2 + 40, box.y + box.height / 2 + 10, { steps: 4 });
+  await page.mouse.up();
+  await page.evaluate(() => window.refnpr.redraw(false));
+  const dragged = !same(start, await pixels());
+  await page.select('#camera', 'test:1');
+  await settle();
+  const chosen = await pixels();
+  const exact = await page.evaluate(i => { window.refnpr.shoot(i); return Array.from(window.refnpr.pixels()); },
+    cameras.test[1]);
+  const cameraList = same(chosen, exact);
+  await page.select('#other', '1');
+  await page.waitForFunction('window.refnpr.viewer.runs[1] !== undefined', { timeout: 120000 });
+  await page.evaluate(() => window.refnpr.redraw(false));
+  const split = await pixels();
+  const halves = await page.evaluate(() => {
+    const v = window.refnpr.viewer;
+    const w = v.gl.canvas.width, h = v.gl.canvas.height, at = Math.round(v.split * w);
+    const draw = i => { v.other = -1; v.shown = i; window.refnpr.redraw(false); return window.refnpr.pixels(); };
+    const [a, b] = [draw(0), draw(1)];
+    v.other = 1; v.shown = 0;
+    return { w, h, at, a: Array.from(a), b: Array.from(b) };
+  });
+  let comparison = halves.a.length === split.length;
+  for (let y = 0; comparison && y < halves.h; y++) {
+    for (let x = 0; x < halves.w; x++) {
+      const i = (y * halves.w + x) * 4;
+      const want = x < halves.at ? halves.a : halves.b;
+      if (want[i] !== split[i] || want[i + 1] !== split[i + 1] || want[i + 2] !== split[i + 2]) { comparison = false; break; }
+    }
+  }
+  const readout = await page.$eval('#status', e => e.textContent);
+  const result = { dragged, cameraList, comparison, frameReadout: / ms\/frame/.test(readout) };
+  if (!Object.values(result).every(Boolean)) {
+    console.error('controls failed:', JSON.stringify(result));
+    process.exitCode = 1;
+  }
+  return result;
 }
 
 const browser = await puppeteer.launch({
@@ -71,6 +126,7 @@ try {
   }, chosen[0][1], frameSize);
   const gpuBytes = await page.evaluate(i => window.refnpr.viewer.runs[i].bytes, run);
   const stats = { load_seconds: loaded, gpu_bytes: gpuBytes, frame_ms: frameMs, frame_size: frameSize, views: chosen.length };
+  if (interact) stats.controls = await checkControls(page);
   if (live) {
     const [fresh, served] = live;
     const temporary = `${served}.viewcheck.tmp`;

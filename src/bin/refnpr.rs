@@ -674,7 +674,10 @@ fn run_view(
     for path in paths {
         let run = refnpr::view::ViewRun::new(path, data);
         if !run.checkpoint.is_file() {
-            bail!("{}: no checkpoint here (expected {})", path.display(), run.checkpoint.display());
+            if static_dir.is_some() || !path.is_dir() {
+                bail!("{}: no checkpoint here (expected {})", path.display(), run.checkpoint.display());
+            }
+            println!("waiting for {} (a run in progress: the page shows it when it appears)", run.checkpoint.display());
         }
         runs.push(run);
     }

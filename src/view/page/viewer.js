@@ -331,7 +331,7 @@ class Orbit {
 
 const viewer = {
   gl: null, runs: [], names: [], cameras: [], versions: [], orbit: null,
-  shown: 0, other: -1, split: 0.5, scale: 1, frameMs: 0, reloads: 0,
+  shown: 0, other: -1, split: 0.5, scale: 1, frameMs: 0, fullMs: 0, reloads: 0,
 };
 
 function fail(e) {
@@ -409,10 +409,21 @@ function renderAt(cam) {
   viewer.frameMs = performance.now() - started;
 }
 
-function redraw() {
+// While the camera moves, frames are drawn at a resolution the last full
+// frame's time says fits in about 50 ms (at least 1/8); the full
+// resolution follows once it rests (a software renderer takes seconds).
+let settle = null;
+function redraw(moving) {
   if (!viewer.orbit || !viewer.runs[viewer.shown]) return;
-  const cam = viewer.orbit.camera(viewer.scale);
+  let scale = viewer.scale;
+  if (moving && viewer.fullMs > 50) {
+    scale = Math.max(scale * Math.sqrt(50 / viewer.fullMs), 0.125);
+    clearTimeout(settle);
+    settle = setTimeout(() => schedule(false), 300);
+  }
+  const cam = viewer.orbit.camera(scale);
   renderAt(cam);
+  if (scale === viewer.scale) viewer.fullMs = viewer.frameMs;
   const display = viewer.orbit.intrinsics;
   const canvas = viewer.gl.canvas;
   canvas.style.width = `${display.width}px`;
@@ -427,10 +438,17 @@ function redraw() {
 }
 
 let pending = false;
-function schedule() {
+let pendingMoving = false;
+function schedule(moving = false) {
+  pendingMoving = pendingMoving || moving;
   if (pending) return;
   pending = true;
-  requestAnimationFrame(() => { pending = false; try { redraw(); } catch (e) { fail(e); } });
+  requestAnimationFrame(() => {
+    const m = pendingMoving;
+    pending = false;
+    pendingMoving = false;
+    try { redraw(m); } catch (e) { fail(e); }
+  });
 }
 
 function fillCameras() {
@@ -458,9 +476,9 @@ function bindControls(canvas) {
     const dx = (e.clientX - drag.x) / size, dy = (e.clientY - drag.y) / size;
     drag.x = e.clientX; drag.y = e.clientY;
     if (drag.pan) viewer.orbit.pan(dx, dy); else viewer.orbit.orbit(dx * Math.PI, dy * Math.PI);
-    schedule();
+    schedule(true);
   });
-  canvas.addEventListener('wheel', e => { e.preventDefault(); viewer.orbit.zoom(Math.exp(e.deltaY * 0.001)); schedule(); }, { passive: false });
+  canvas.addEventListener('wheel', e => { e.preventDefault(); viewer.orbit.zoom(Math.exp(e.deltaY * 0.001)); schedule(true); }, { passive: false });
   $('camera').addEventListener('change', e => {
     const [split, i] = e.target.value.split(':');
     const cam = viewer.cameras[viewer.shown][split][Number(i)];
@@ -518,7 +536,17 @@ async function start() {
       $(id).appendChild(o);
     }
   });
-  const run = await loadRun(0);
+  let run = null;
+  while (!run) {
+    try {
+      run = await loadRun(0);
+    } catch (e) {
+      // A run that has not written its first checkpoint yet: wait for it.
+      if (!listing.live) throw e;
+      $('status').textContent = `waiting for ${listing.runs[0]}'s checkpoint…`;
+      await new Promise(r => setTimeout(r, 1000));
+    }
+  }
   viewer.orbit = firstCamera(run, viewer.cameras[0]);
   fillCameras();
   bindControls(canvas);
@@ -537,6 +565,14 @@ window.refnpr = {
     renderAt(viewer.orbit.camera(1));
     return viewer.gl.canvas.toDataURL('image/png');
   },
+  // The canvas's pixels as drawn (RGBA, bottom row first).
+  pixels() {
+    const gl = viewer.gl;
+    const out = new Uint8Array(gl.canvas.width * gl.canvas.height * 4);
+    gl.readPixels(0, 0, gl.canvas.width, gl.canvas.height, gl.RGBA, gl.UNSIGNED_BYTE, out);
+    return out;
+  },
+  redraw,
   async show(i) {
     if (!viewer.runs[i]) await loadRun(i);
     viewer.shown = i;
