@@ -5,8 +5,9 @@
 #     cameras: a stylized run (SH 0) and a photoreal one;
 #   - the static copy (`--static DIR`) behind Python's plain file server,
 #     shot again: the same pixels as the served page;
-#   - the controls: a drag moves the view, the camera list shows a dataset
-#     camera exactly, the comparison splits the two runs at the slider;
+#   - the controls: a drag moves the view, the camera list and a click on a
+#     drawn camera show that dataset camera exactly, the comparison splits
+#     the two runs at the slider;
 #   - live reload: a served run's checkpoint replaced (as a fit in progress
 #     replaces it) must reach the page, which then shows the new field.
 #   bash scripts/check_view.sh REFNPR_BINARY STYLIZED_RUN PHOTO_RUN

@@ -4,7 +4,7 @@
 // camera for compare.py; prints the page's load time, GPU bytes and the time
 // of an 800x800 frame.
 //
-//   node view.mjs URL CAMERAS.json OUT_DIR [--run N] [--views N] [--frame-size 800 (0: not timed)] [--controls]
+//   node view.mjs URL CAMERAS.json OUT_DIR [--run N] [--views N] [--frame-size 800 (0: not timed)] [--controls] [--page-shot FILE]
 //                 [--live NEW_CHECKPOINT SERVED_CHECKPOINT] [--chromium PATH]
 //
 // --live: after the shots, NEW_CHECKPOINT replaces SERVED_CHECKPOINT (copied
@@ -25,6 +25,9 @@ const run = Number((take('--run', 1) || ['0'])[0]);
 const frameSize = Number((take('--frame-size', 1) || ['800'])[0]);
 const live = take('--live', 2);
 const interact = take('--controls', 0) !== null;
+// --page-shot FILE: the whole page (controls and canvas) as PNG, comparing
+// run 0 with run 1 at the split when the page serves two.
+const pageShot = take('--page-shot', 1);
 const chromium = (take('--chromium', 1) || [process.env.CHROMIUM || '/usr/bin/chromium'])[0];
 const [url, camerasPath, outDir] = args;
 if (!outDir) {
@@ -45,7 +48,9 @@ async function shootAll(page, dir) {
 
 // --controls: the page's controls as a person uses them (the page must
 // serve two runs): a drag moves the view, the camera list shows the chosen
-// dataset camera exactly, the comparison shows run 0 left of the split and
+// dataset camera exactly, so does a click on a camera drawn over the view
+// (the shots are of the WebGL canvas alone, under the drawing), the
+// comparison shows run 0 left of the split and
 // run 1 right of it, the frame-time readout is there. Exits 1 on a failure.
 async function checkControls(page) {
   const same = (a, b) => a.length === b.length && a.every((v, i) => v === b[i]);
@@ -68,6 +73,37 @@ async function checkControls(page) {
   const exact = await page.evaluate(i => { window.refnpr.shoot(i); return Array.from(window.refnpr.pixels()); },
     cameras.test[1]);
   const cameraList = same(chosen, exact);
+  // A click on a camera drawn over the view looks through it: zoom out
+  // (the wheel) until one is drawn inside the view, click it.
+  let mark = null;
+  for (let tries = 0; tries < 6 && !mark; tries++) {
+    await page.evaluate(() => window.refnpr.redraw(false));
+    mark = await page.evaluate(() => {
+      const o = document.getElementById('overlay');
+      const now = document.getElementById('camera').value;
+      return (window.refnpr.viewer.marks || [])
+        .find(m => m.value !== now && m.x > 10 && m.y > 10 && m.x < o.width - 10 && m.y < o.height - 10) || null;
+    });
+    if (!mark) {
+      await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
+      await page.mouse.wheel({ deltaY: 500 });
+      await settle();
+    }
+  }
+  let cameraClick = false;
+  if (mark) {
+    await page.mouse.click(box.x + mark.x, box.y + mark.y);
+    await settle();
+    const [split, i] = mark.value.split(':');
+    const picked = await page.$eval('#camera', e => e.value);
+    const clicked = await pixels();
+    const target = await page.evaluate(c => { window.refnpr.shoot(c); return Array.from(window.refnpr.pixels()); },
+      cameras[split][Number(i)]);
+    cameraClick = picked === mark.value && same(clicked, target);
+    if (!cameraClick) console.error(`camera click: ${JSON.stringify(mark)} picked ${picked}, pixels ${same(clicked, target) ? 'equal' : 'differ'}`);
+  } else {
+    console.error('camera click: no drawn camera inside the view');
+  }
   await page.select('#other', '1');
   await page.waitForFunction('window.refnpr.viewer.runs[1] !== undefined', { timeout: 120000 });
   await page.evaluate(() => window.refnpr.redraw(false));
@@ -89,7 +125,7 @@ async function checkControls(page) {
     }
   }
   const readout = await page.$eval('#status', e => e.textContent);
-  const result = { dragged, cameraList, comparison, frameReadout: / ms\/frame/.test(readout) };
+  const result = { dragged, cameraList, cameraClick, comparison, frameReadout: / ms\/frame/.test(readout) };
   if (!Object.values(result).every(Boolean)) {
     console.error('controls failed:', JSON.stringify(result));
     process.exitCode = 1;
@@ -127,6 +163,18 @@ try {
   const gpuBytes = await page.evaluate(i => window.refnpr.viewer.runs[i].bytes, run);
   const stats = { load_seconds: loaded, gpu_bytes: gpuBytes, frame_ms: frameMs, frame_size: frameSize, views: chosen.length };
   if (interact) stats.controls = await checkControls(page);
+  if (pageShot) {
+    const two = await page.evaluate(() => window.refnpr.viewer.names.length > 1);
+    await page.select('#camera', `test:${chosen[0][0]}`);
+    if (two) {
+      await page.select('#other', '1');
+      await page.waitForFunction('window.refnpr.viewer.runs[1] !== undefined', { timeout: 120000 });
+    }
+    await page.evaluate(() => window.refnpr.redraw(false));
+    if (chosen[0][1].width < 400) await page.select('#scale', '2'); // small datasets shown at twice their size
+    const box = await (await page.$('#stage')).boundingBox();
+    await page.screenshot({ path: pageShot[0], clip: { x: 0, y: 0, width: Math.max(box.x + box.width + 8, 720), height: box.y + box.height + 8 } });
+  }
   if (live) {
     const [fresh, served] = live;
     const temporary = `${served}.viewcheck.tmp`;

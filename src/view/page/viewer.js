@@ -8,7 +8,6 @@
 // The field comes packed by src/view/pack.rs (read its comment for the layout).
 'use strict';
 
-const BRICK = 8;
 const $ = id => document.getElementById(id);
 
 const VERTEX = `#version 300 es
@@ -20,6 +19,7 @@ void main() {
 // The fragment shader for one field: its SH degree and texture count are
 // compiled in (sampler arrays are indexed by constants only in GLSL ES 3.0).
 function fragmentSource(h) {
+  const BRICK = h.brick;
   const nb = [1, 4, 9, 16][h.sh_degree];
   const textures = h.sh_textures;
   const samplers = [...Array(textures).keys()].map(i => `uniform highp sampler3D u_sh${i};`).join('\n');
@@ -56,14 +56,14 @@ void basis_of(vec3 d, out float basis[${Math.max(nb, 1)}]) {
   basis[7] = -1.0925484 * d.x * d.z; basis[8] = 0.5462742 * (d.x * d.x - d.y * d.y);` : ''}
 }
 
-int entry_of(ivec3 q) { return texelFetch(u_index, q >> 3, 0).r; }
+int entry_of(ivec3 q) { return texelFetch(u_index, q / ${BRICK}, 0).r; }
 // An entry's atlas slot (-1: the brick has no data): >= 0 as it is, <= -3
 // for a brick with data whose own cells rays skip.
 int slot_of(int e) { return e >= 0 ? e : (e <= -3 ? -e - 3 : -1); }
 
 ivec3 atlas_texel(int slot, ivec3 q) {
   ivec3 brick = ivec3(slot % u_atlas.x, (slot / u_atlas.x) % u_atlas.y, slot / (u_atlas.x * u_atlas.y));
-  return brick * ${BRICK} + (q & ${BRICK - 1});
+  return brick * ${BRICK} + q % ${BRICK};
 }
 
 void main() {
@@ -103,9 +103,9 @@ void main() {
       ivec3 base = min(ivec3(gc), top);
       int entry = entry_of(base);
       if (entry == -2 || entry <= -3) {
-        // A brick whose closure has no active point: jump to the first
+        // A brick whose closure has no point of positive density: jump to the first
         // sample past it (the same positions: k is counted, not summed).
-        vec3 lo = vec3((base >> 3) * ${BRICK}), hi = lo + ${BRICK}.0;
+        vec3 lo = vec3((base / ${BRICK}) * ${BRICK}), hi = lo + ${BRICK}.0;
         vec3 ea = (lo - g_origin) / g_dir, eb = (hi - g_origin) / g_dir;
         float exit = min(min(max(ea.x, eb.x), max(ea.y, eb.y)), max(ea.z, eb.z));
         if (!(exit > t)) exit = t; // NaN on a face: step one sample
@@ -113,8 +113,8 @@ void main() {
         continue;
       }
       k++;
-      // All 8 corners in the base's brick (7 cells in 8 per axis): one index read.
-      bool one_brick = all(lessThan(base & ${BRICK - 1}, ivec3(${BRICK - 1})));
+      // All 8 corners in the base's brick (3 cells in 4 per axis): one index read.
+      bool one_brick = all(lessThan(base % ${BRICK}, ivec3(${BRICK - 1})));
       if (entry == -1 && one_brick) continue; // no data: no active corner
       vec3 f = gc - vec3(base);
       float w[8], dens[8];
@@ -191,7 +191,7 @@ function uploadRun(gl, buffer) {
   const index = new Int32Array(buffer, offset, h.index_bytes / 4); offset += h.index_bytes;
   const density = new Float32Array(buffer, offset, h.density_bytes / 4); offset += h.density_bytes;
   const sh = new Uint16Array(buffer, offset, h.sh_bytes / 2);
-  const atlasSize = h.atlas.map(a => a * BRICK);
+  const atlasSize = h.atlas.map(a => a * h.brick);
   const texels = atlasSize[0] * atlasSize[1] * atlasSize[2];
   const textures = [
     texture3d(gl, 0, gl.R32I, gl.RED_INTEGER, gl.INT, h.blocks, index),
@@ -424,10 +424,13 @@ function redraw(moving) {
   const cam = viewer.orbit.camera(scale);
   renderAt(cam);
   if (scale === viewer.scale) viewer.fullMs = viewer.frameMs;
-  const display = viewer.orbit.intrinsics;
+  // Shown at the dataset's size, or larger when rendered larger.
+  const enlarge = Math.max(1, viewer.scale);
+  const display = { width: viewer.orbit.intrinsics.width * enlarge, height: viewer.orbit.intrinsics.height * enlarge };
   const canvas = viewer.gl.canvas;
   canvas.style.width = `${display.width}px`;
   canvas.style.height = `${display.height}px`;
+  drawCameras(viewer.orbit.camera(1), enlarge);
   const split = $('split');
   split.style.display = viewer.other >= 0 ? 'block' : 'none';
   split.style.left = `${viewer.split * display.width}px`;
@@ -451,6 +454,53 @@ function schedule(moving = false) {
   });
 }
 
+// ---- the dataset's cameras, drawn over the view ---------------------------
+
+// `p` (world) in pixels of `cam`'s image and its depth (Camera::project), or null behind it.
+function project(cam, p) {
+  const m = cam.c2w;
+  const d = v3.sub(p, [m[12], m[13], m[14]]);
+  const x = v3.dot(d, [m[0], m[1], m[2]]), y = v3.dot(d, [m[4], m[5], m[6]]), z = v3.dot(d, [m[8], m[9], m[10]]);
+  if (z >= -1e-6) return null;
+  return [cam.fx * (x / -z) + cam.cx, -cam.fy * (y / -z) + cam.cy, -z];
+}
+
+// The cameras' centres and frusta (a tenth of the view's distance deep),
+// drawn on the overlay in display pixels; remembers where each centre lands
+// for clicks. Forward-facing runs' cameras are in world space, as here.
+function drawCameras(cam, displayScale) {
+  const overlay = $('overlay');
+  const w = Math.round(cam.width * displayScale), h = Math.round(cam.height * displayScale);
+  if (overlay.width !== w || overlay.height !== h) { overlay.width = w; overlay.height = h; }
+  const ctx = overlay.getContext('2d');
+  ctx.clearRect(0, 0, w, h);
+  viewer.marks = [];
+  const cams = viewer.cameras[viewer.shown];
+  if (!$('showCameras').checked || !cams) return;
+  const depth = 0.1 * Math.hypot(...v3.sub(viewer.orbit.eye, viewer.orbit.target));
+  for (const split of ['train', 'test']) {
+    ctx.strokeStyle = split === 'test' ? '#ffab40' : '#4fc3f7';
+    cams[split].forEach((c, i) => {
+      const m = c.c2w;
+      const eye = [m[12], m[13], m[14]];
+      const corner = (px, py) => {
+        const dir = [(px - c.cx) / c.fx, -(py - c.cy) / c.fy, -1];
+        const world = v3.add(v3.add(v3.scale([m[0], m[1], m[2]], dir[0]), v3.scale([m[4], m[5], m[6]], dir[1])), v3.scale([m[8], m[9], m[10]], dir[2]));
+        return v3.add(eye, v3.scale(world, depth));
+      };
+      const pts = [eye, corner(0, 0), corner(c.width, 0), corner(c.width, c.height), corner(0, c.height)].map(p => project(cam, p));
+      if (pts.some(p => !p)) return;
+      const [o, ...rim] = pts.map(p => [p[0] * displayScale, p[1] * displayScale]);
+      ctx.beginPath();
+      for (const r of rim) { ctx.moveTo(o[0], o[1]); ctx.lineTo(r[0], r[1]); }
+      rim.forEach((r, k) => (k ? ctx.lineTo(r[0], r[1]) : ctx.moveTo(r[0], r[1])));
+      ctx.closePath();
+      ctx.stroke();
+      viewer.marks.push({ x: o[0], y: o[1], value: `${split}:${i}` });
+    });
+  }
+}
+
 function fillCameras() {
   const select = $('camera');
   select.innerHTML = '';
@@ -468,8 +518,22 @@ function fillCameras() {
 function bindControls(canvas) {
   let drag = null;
   canvas.addEventListener('contextmenu', e => e.preventDefault());
-  canvas.addEventListener('pointerdown', e => { drag = { x: e.clientX, y: e.clientY, pan: e.shiftKey || e.button === 2 }; canvas.setPointerCapture(e.pointerId); });
-  canvas.addEventListener('pointerup', () => { drag = null; });
+  canvas.addEventListener('pointerdown', e => {
+    drag = { x: e.clientX, y: e.clientY, x0: e.clientX, y0: e.clientY, pan: e.shiftKey || e.button === 2 };
+    canvas.setPointerCapture(e.pointerId);
+  });
+  canvas.addEventListener('pointerup', e => {
+    // A click (no drag) near a drawn camera looks through it.
+    const moved = drag && Math.hypot(e.clientX - drag.x0, e.clientY - drag.y0) > 3;
+    drag = null;
+    if (moved) return;
+    const r = canvas.getBoundingClientRect();
+    const hit = (viewer.marks || []).find(m => Math.hypot(m.x - (e.clientX - r.left), m.y - (e.clientY - r.top)) < 8);
+    if (hit) {
+      $('camera').value = hit.value;
+      $('camera').dispatchEvent(new Event('change'));
+    }
+  });
   canvas.addEventListener('pointermove', e => {
     if (!drag) return;
     const size = Math.max(canvas.clientWidth, 1);
@@ -488,6 +552,7 @@ function bindControls(canvas) {
     schedule();
   });
   $('scale').addEventListener('change', e => { viewer.scale = Number(e.target.value); schedule(); });
+  $('showCameras').addEventListener('change', () => schedule());
   $('splitAt').addEventListener('input', e => { viewer.split = Number(e.target.value); schedule(); });
   $('run').addEventListener('change', e => { viewer.shown = Number(e.target.value); fillCameras(); schedule(); });
   $('other').addEventListener('change', async e => {
