@@ -26,6 +26,21 @@ MESH_FLOOR=15
 OUT="$(mktemp -d)"
 trap 'rm -rf "$OUT"' EXIT
 above() { python3 -c "import json,sys; m=json.load(open('$1'))['mean']; print(f'{m:.2f} dB'); sys.exit(0 if m >= $2 else 1)"; }
+# Exports RUN's mesh as $d/NAME.glb (extra export arguments after the
+# label), reads it with trimesh, shoots it in three.js against the render;
+# sets counts=(vertices triangles).
+check_mesh() {
+  local file="$1" label="$2"; shift 2
+  local summary mean
+  summary="$("$BIN" export "$RUN" --format mesh --out "$d/$file.glb" "$@")"
+  echo "$summary"
+  counts=($(echo "$summary" | sed -E 's/.*\(([0-9]+) vertices, ([0-9]+) triangles.*/\1 \2/'))
+  python3 scripts/check_mesh.py "$d/$file.glb" "${counts[0]}" "${counts[1]}"
+  node scripts/browser/shoot.mjs mesh "$d/$file.glb" "$d/cameras.json" "$d/$file"
+  python3 scripts/browser/compare.py "$d/$file" "$d/render/rgb" --json "$d/$file.json" | tail -1
+  mean="$(above "$d/$file.json" $MESH_FLOOR)" || { echo "error: $name: $label in three.js: $mean, below the floor $MESH_FLOOR" >&2; exit 1; }
+  echo "$name: $label in three.js GLTFLoader: $mean (floor $MESH_FLOOR)"
+}
 for RUN in "$@"; do
   name="$(basename "$RUN")"
   d="$OUT/$name"
@@ -42,21 +57,7 @@ for RUN in "$@"; do
     mean="$(above "$d/splat-$mode.json" $floor)" || { echo "error: $name: splats in gaussian-splats-3d ($mode): $mean, below the floor $floor" >&2; exit 1; }
     echo "$name: splats in gaussian-splats-3d ($mode): $mean (floor $floor)"
   done
-  summary="$("$BIN" export "$RUN" --format mesh --out "$d/mesh.glb")"
-  echo "$summary"
-  counts=($(echo "$summary" | sed -E 's/.*\(([0-9]+) vertices, ([0-9]+) triangles.*/\1 \2/'))
-  python3 scripts/check_mesh.py "$d/mesh.glb" "${counts[0]}" "${counts[1]}"
-  node scripts/browser/shoot.mjs mesh "$d/mesh.glb" "$d/cameras.json" "$d/mesh"
-  python3 scripts/browser/compare.py "$d/mesh" "$d/render/rgb" --json "$d/mesh.json" | tail -1
-  mean="$(above "$d/mesh.json" $MESH_FLOOR)" || { echo "error: $name: mesh in three.js: $mean, below the floor $MESH_FLOOR" >&2; exit 1; }
-  echo "$name: mesh in three.js GLTFLoader: $mean (floor $MESH_FLOOR)"
+  check_mesh mesh "mesh"
   # Simplified to a tenth: still closed, still in place.
-  summary="$("$BIN" export "$RUN" --format mesh --out "$d/small.glb" --max-triangles $((counts[1] / 10)))"
-  echo "$summary"
-  small=($(echo "$summary" | sed -E 's/.*\(([0-9]+) vertices, ([0-9]+) triangles.*/\1 \2/'))
-  python3 scripts/check_mesh.py "$d/small.glb" "${small[0]}" "${small[1]}"
-  node scripts/browser/shoot.mjs mesh "$d/small.glb" "$d/cameras.json" "$d/small"
-  python3 scripts/browser/compare.py "$d/small" "$d/render/rgb" --json "$d/small.json" | tail -1
-  mean="$(above "$d/small.json" $MESH_FLOOR)" || { echo "error: $name: simplified mesh in three.js: $mean, below the floor $MESH_FLOOR" >&2; exit 1; }
-  echo "$name: mesh simplified to a tenth in three.js GLTFLoader: $mean (floor $MESH_FLOOR)"
+  check_mesh small "mesh simplified to a tenth" --max-triangles $((counts[1] / 10))
 done

@@ -170,10 +170,14 @@ try {
       await page.select('#other', '1');
       await page.waitForFunction('window.refnpr.viewer.runs[1] !== undefined', { timeout: 120000 });
     }
-    await page.evaluate(() => window.refnpr.redraw(false));
     if (chosen[0][1].width < 400) await page.select('#scale', '2'); // small datasets shown at twice their size
-    const box = await (await page.$('#stage')).boundingBox();
-    await page.screenshot({ path: pageShot[0], clip: { x: 0, y: 0, width: Math.max(box.x + box.width + 8, 720), height: box.y + box.height + 8 } });
+    await page.evaluate(() => window.refnpr.redraw(false));
+    // As wide as the view (the bar wraps to fit), at least 760 px.
+    const stageBox = await (await page.$('#stage')).boundingBox();
+    const width = Math.ceil(Math.max(stageBox.x + stageBox.width + 8, 760));
+    await page.setViewport({ width, height: 1000 });
+    const fitted = await (await page.$('#stage')).boundingBox();
+    await page.screenshot({ path: pageShot[0], clip: { x: 0, y: 0, width, height: Math.ceil(fitted.y + fitted.height + 8) } });
   }
   if (live) {
     const [fresh, served] = live;

@@ -489,7 +489,8 @@ function drawCameras(cam, displayScale) {
         return v3.add(eye, v3.scale(world, depth));
       };
       const pts = [eye, corner(0, 0), corner(c.width, 0), corner(c.width, c.height), corner(0, c.height)].map(p => project(cam, p));
-      if (pts.some(p => !p)) return;
+      // Behind the view, or so near that its frustum would sprawl over it.
+      if (pts.some(p => !p) || pts[0][2] < 2 * depth) return;
       const [o, ...rim] = pts.map(p => [p[0] * displayScale, p[1] * displayScale]);
       ctx.beginPath();
       for (const r of rim) { ctx.moveTo(o[0], o[1]); ctx.lineTo(r[0], r[1]); }
