@@ -48,23 +48,14 @@ impl ViewRun {
 }
 
 /// `runs.json`: the runs' names, and `live` (poll `runs/N/version`).
-pub fn runs_json(runs: &[ViewRun], live: bool) -> String {
-    let names: Vec<&str> = runs.iter().map(|r| r.name.as_str()).collect();
+pub fn runs_json<'a>(names: impl IntoIterator<Item = &'a str>, live: bool) -> String {
+    let names: Vec<&str> = names.into_iter().collect();
     serde_json::json!({ "live": live, "runs": names }).to_string()
 }
 
-/// `field.bin` of a checkpoint: the header's length (u32), its JSON, zero
-/// padding to a multiple of 4, the packed textures.
+/// `field.bin` of a checkpoint (`pack::PackedField::to_file`).
 pub fn field_file(ck: &Checkpoint) -> Result<Vec<u8>> {
-    let packed = pack::pack(ck).with_context(|| format!("packing {} for the viewer", ck.source.display()))?;
-    let header = serde_json::to_vec(&packed.header)?;
-    let start = (4 + header.len()).next_multiple_of(4);
-    let mut out = Vec::with_capacity(start + packed.bytes.len());
-    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
-    out.extend_from_slice(&header);
-    out.resize(start, 0);
-    out.extend_from_slice(&packed.bytes);
-    Ok(out)
+    pack::pack(ck).and_then(|p| p.to_file()).with_context(|| format!("packing {} for the viewer", ck.source.display()))
 }
 
 /// `cameras.json` of a run: the dataset's cameras, or none (and why) when
@@ -85,7 +76,7 @@ pub fn write_static(runs: &[ViewRun], dir: &Path, device: &Device) -> Result<u64
     files::create_dir(dir)?;
     files::write_text(&dir.join("index.html"), INDEX_HTML)?;
     files::write_text(&dir.join("viewer.js"), VIEWER_JS)?;
-    files::write_text(&dir.join("runs.json"), &runs_json(runs, false))?;
+    files::write_text(&dir.join("runs.json"), &runs_json(runs.iter().map(|r| r.name.as_str()), false))?;
     let mut bytes = (INDEX_HTML.len() + VIEWER_JS.len()) as u64;
     for (i, run) in runs.iter().enumerate() {
         let ck = checkpoint::load_with(&run.checkpoint, device, false)?;

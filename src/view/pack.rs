@@ -60,13 +60,13 @@ pub struct FieldHeader {
     pub brick: usize,
     /// Bricks along x, y, z of the lattice (the index texture's size).
     pub blocks: [usize; 3],
-    /// Bricks along x, y, z of the atlas (its texture size / 8).
+    /// Bricks along x, y, z of the atlas (its texture size / `brick`).
     pub atlas: [usize; 3],
     pub slots: usize,
     /// RGBA16F textures of SH coefficients (coefficient j: texture j / 4,
     /// channel j % 4; j = channel * basis + basis function, refnpr's row).
     pub sh_textures: usize,
-    /// The checkpoint's step and fingerprint (the page reloads when they change).
+    /// The checkpoint's step and fingerprint (which field this is).
     pub checkpoint_step: usize,
     pub fingerprint: String,
     /// Byte lengths of the three parts of `field.bin`, in order.
@@ -75,11 +75,31 @@ pub struct FieldHeader {
     pub sh_bytes: usize,
 }
 
-/// A packed field: its header and `field.bin` (index as i32, density as
-/// f32, SH as f16 bits, all little-endian, x fastest in every texture).
+/// A packed field: the page's header and the textures it describes.
 pub struct PackedField {
     pub header: FieldHeader,
-    pub bytes: Vec<u8>,
+    pub lattice: Lattice,
+}
+
+impl PackedField {
+    /// `field.bin`: the header's length (u32), its JSON, zero padding to a
+    /// multiple of 4, then the index (i32), the density (f32) and the SH
+    /// (f16 bits), all little-endian, x fastest in every texture; written
+    /// once into one buffer (fern's is 0.4 GB).
+    pub fn to_file(&self) -> Result<Vec<u8>> {
+        let h = &self.header;
+        let json = serde_json::to_vec(h)?;
+        let start = (4 + json.len()).next_multiple_of(4);
+        let mut out = Vec::with_capacity(start + h.index_bytes + h.density_bytes + h.sh_bytes);
+        out.extend_from_slice(&(json.len() as u32).to_le_bytes());
+        out.extend_from_slice(&json);
+        out.resize(start, 0);
+        let l = &self.lattice;
+        l.index.iter().for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+        l.density.iter().for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+        l.sh_bits.iter().for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+        Ok(out)
+    }
 }
 
 /// The lattice as the page's textures.
@@ -122,11 +142,7 @@ pub fn pack(ck: &Checkpoint) -> Result<PackedField> {
         density_bytes: lattice.density.len() * 4,
         sh_bytes: lattice.sh_bits.len() * 2,
     };
-    let mut bytes = Vec::with_capacity(header.index_bytes + header.density_bytes + header.sh_bytes);
-    lattice.index.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
-    lattice.density.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
-    lattice.sh_bits.iter().for_each(|v| bytes.extend_from_slice(&v.to_le_bytes()));
-    Ok(PackedField { header, bytes })
+    Ok(PackedField { header, lattice })
 }
 
 /// The index and the atlas of `grid`.

@@ -67,7 +67,13 @@ impl Site {
         match path {
             "/" | "/index.html" => return (200, "text/html; charset=utf-8", text(INDEX_HTML)),
             "/viewer.js" => return (200, "text/javascript; charset=utf-8", text(VIEWER_JS)),
-            "/runs.json" => return (200, "application/json", text(&runs_json(&self.runs(), self.live))),
+            "/runs.json" => {
+                return (
+                    200,
+                    "application/json",
+                    text(&runs_json(self.runs.iter().map(|s| s.run.name.as_str()), self.live)),
+                );
+            }
             _ => {}
         }
         let parts: Vec<&str> = path.trim_start_matches('/').split('/').collect();
@@ -84,10 +90,6 @@ impl Site {
             Ok((kind, body)) => (200, kind, body),
             Err(e) => (500, "text/plain", text(&format!("{}: {e:#}\n", served.run.name))),
         }
-    }
-
-    fn runs(&self) -> Vec<ViewRun> {
-        self.runs.iter().map(|s| s.run.clone()).collect()
     }
 
     /// The run of `runs/N/...` (three parts exactly).

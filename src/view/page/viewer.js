@@ -281,7 +281,7 @@ class Orbit {
   setFrom(cam, target) {
     const m = cam.c2w;
     this.eye = [m[12], m[13], m[14]];
-    this.target = target || v3.add(this.eye, v3.scale([-m[8], -m[9], -m[10]], 1));
+    this.target = target;
     this.intrinsics = { fx: cam.fx, fy: cam.fy, cx: cam.cx, cy: cam.cy, width: cam.width, height: cam.height };
     this.start = v3.norm(v3.sub(this.eye, this.target));
     this.exact = cam.c2w.slice(); // a dataset camera is shown with its own matrix until moved
@@ -359,6 +359,18 @@ async function loadRun(i) {
 
 // A first camera: the dataset's first test (or training) view, or one
 // looking at the box's centre from outside it, z up.
+// The point a dataset camera orbits about: along its view, at the box
+// centre's depth (forward-facing runs: one unit ahead, their scene's scale).
+function orbitTarget(run, cam) {
+  const g = run.header.geometry;
+  const centre = v3.scale(v3.add(g.bbox_min, g.bbox_max), 0.5);
+  const m = cam.c2w;
+  const forward = [-m[8], -m[9], -m[10]];
+  const eye = [m[12], m[13], m[14]];
+  const distance = run.header.ndc ? 1 : Math.max(1e-3, v3.dot(v3.sub(centre, eye), forward));
+  return v3.add(eye, v3.scale(forward, distance));
+}
+
 function firstCamera(run, cameras) {
   const views = cameras.test.length ? cameras.test : cameras.train;
   const g = run.header.geometry;
@@ -366,12 +378,9 @@ function firstCamera(run, cameras) {
   if (views.length) {
     const cam = views[0];
     const m = cam.c2w;
-    const forward = [-m[8], -m[9], -m[10]];
-    const eye = [m[12], m[13], m[14]];
     const ndc = !!run.header.ndc;
-    const distance = ndc ? 1 : Math.max(1e-3, v3.dot(v3.sub(centre, eye), forward));
     const up = ndc ? [m[4], m[5], m[6]] : (Math.abs(m[6]) > Math.abs(m[5]) ? [0, 0, Math.sign(m[6]) || 1] : [0, Math.sign(m[5]) || 1, 0]);
-    return new Orbit(cam, v3.add(eye, v3.scale(forward, distance)), up, ndc ? 0.35 : 0);
+    return new Orbit(cam, orbitTarget(run, cam), up, ndc ? 0.35 : 0);
   }
   const radius = Math.hypot(...v3.sub(g.bbox_max, g.bbox_min));
   const eye = v3.add(centre, [0, -1.2 * radius, 0.6 * radius]);
@@ -547,9 +556,7 @@ function bindControls(canvas) {
   $('camera').addEventListener('change', e => {
     const [split, i] = e.target.value.split(':');
     const cam = viewer.cameras[viewer.shown][split][Number(i)];
-    viewer.orbit.setFrom(cam, null);
-    const fresh = firstCamera(viewer.runs[viewer.shown], { test: [cam], train: [] });
-    viewer.orbit.target = fresh.target;
+    viewer.orbit.setFrom(cam, orbitTarget(viewer.runs[viewer.shown], cam));
     schedule();
   });
   $('scale').addEventListener('change', e => { viewer.scale = Number(e.target.value); schedule(); });
@@ -627,7 +634,7 @@ window.refnpr = {
   viewer,
   ready: null,
   shoot(cam) {
-    viewer.orbit.setFrom(cam, null);
+    viewer.orbit.setFrom(cam, orbitTarget(viewer.runs[viewer.shown], cam));
     renderAt(viewer.orbit.camera(1));
     return viewer.gl.canvas.toDataURL('image/png');
   },
