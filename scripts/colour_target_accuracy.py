@@ -22,19 +22,19 @@ import json, os, sys
 import numpy as np
 from PIL import Image
 
-PATCH = 16
+PATCH = 16  # records written before `patch` was recorded are relu5 patches
 
 def load(path, background):
     a = np.asarray(Image.open(path).convert("RGBA"), dtype=np.float64) / 255.0
     return a[..., :3] * a[..., 3:] + background * (1.0 - a[..., 3:])
 
-def patch_means(img, cols, rows):
-    img = img[: rows * PATCH, : cols * PATCH]
-    return img.reshape(rows, PATCH, cols, PATCH, 3).mean(axis=(1, 3)).reshape(-1, 3)
+def patch_means(img, cols, rows, patch=PATCH):
+    img = img[: rows * patch, : cols * patch]
+    return img.reshape(rows, patch, cols, patch, 3).mean(axis=(1, 3)).reshape(-1, 3)
 
-def majority_ids(path, cols, rows):
-    ids = np.asarray(Image.open(path))[: rows * PATCH, : cols * PATCH]
-    blocks = ids.reshape(rows, PATCH, cols, PATCH).transpose(0, 2, 1, 3).reshape(rows * cols, -1)
+def majority_ids(path, cols, rows, patch=PATCH):
+    ids = np.asarray(Image.open(path))[: rows * patch, : cols * patch]
+    blocks = ids.reshape(rows, patch, cols, patch).transpose(0, 2, 1, 3).reshape(rows * cols, -1)
     return np.array([np.bincount(b).argmax() for b in blocks])
 
 def psnr(a, b):
@@ -60,13 +60,13 @@ def main():
         run_all = {n: [] for n, _ in runs}
         for r in recs:
             cols, rows = r["positions"]
-            gt = patch_means(load(f"{gt_dir}/r_{r['view']}.png", background), cols, rows)
+            gt = patch_means(load(f"{gt_dir}/r_{r['view']}.png", background), cols, rows, r.get("patch", PATCH))
             sup = np.array([t is not None for t in r["targets"]])
             tgt += [t for t in r["targets"] if t is not None]
             gt_sup.append(gt[sup])
             gt_all.append(gt)
             for n, d in runs:
-                p = patch_means(load(f"{d}/rgb/{r['view']:04d}.png", background), cols, rows)
+                p = patch_means(load(f"{d}/rgb/{r['view']:04d}.png", background), cols, rows, r.get("patch", PATCH))
                 run_sup[n].append(p[sup])
                 run_all[n].append(p)
         gt_sup, gt_all = np.concatenate(gt_sup), np.concatenate(gt_all)
@@ -80,7 +80,7 @@ def main():
             ref_ids = majority_ids(f"{id_dir}/r_{ref}_id.png", cols, rows)
             same = []
             for r in recs:
-                ids = majority_ids(f"{id_dir}/r_{r['view']}_id.png", *r["positions"])
+                ids = majority_ids(f"{id_dir}/r_{r['view']}_id.png", *r["positions"], r.get("patch", PATCH))
                 same += [ids[i] == ref_ids[s] for i, s in enumerate(r["sources"]) if s is not None]
             same = np.array(same)
             print(f"  targets from a reference patch of the same object: {100 * same.mean():.1f} %"

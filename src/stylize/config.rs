@@ -292,6 +292,11 @@ pub struct ColourMapConfig {
     /// through the map (the content's structure in the reference's colours)
     /// instead of the render itself, which pulls colours back to the photo's.
     pub mapped_content: bool,
+    /// Pixels per side of the patches whose mean colour L_color compares
+    /// with the map's targets (16: one per relu5 position, as the paper's
+    /// matched targets). Smaller patches hold colours closer to the map on
+    /// every surface; larger ones leave more room for painted texture.
+    pub target_patch: usize,
     /// Bins per colour axis of the fitted offsets.
     pub bins: usize,
     /// Width (colour units, [0, 1] per channel) of the Gaussian that mixes nearby bins.
@@ -308,6 +313,7 @@ impl Default for ColourMapConfig {
             colour_targets: true,
             in_smooth_update: false,
             mapped_content: false,
+            target_patch: 16,
             bins: 16,
             sigma: 0.08,
             prior_pixels: 4.0,
@@ -317,6 +323,11 @@ impl Default for ColourMapConfig {
 
 impl ColourMapConfig {
     pub fn validate(&self) -> Result<()> {
+        ensure!(
+            (1..=64).contains(&self.target_patch),
+            "colour_map.target_patch must be in 1..=64 pixels, got {}",
+            self.target_patch
+        );
         ensure!((2..=64).contains(&self.bins), "colour_map.bins must be in 2..=64, got {}", self.bins);
         ensure!(self.sigma.is_finite() && self.sigma > 0.0, "colour_map.sigma must be positive, got {}", self.sigma);
         ensure!(

@@ -102,9 +102,9 @@ pub(crate) fn guides(
             (Some(t), Some(d), _) => {
                 Some(t.colour_targets(d, &content, l.colour_max_distance, white, st.cfg().search_chunk))
             }
-            (Some(_), None, Some(ColourSource::Mapped(_))) => {
-                mapped.as_ref().map(|m| ColourTargets::from_mapped(&content, m, white, &st.device))
-            }
+            (Some(_), None, Some(ColourSource::Mapped(_))) => mapped
+                .as_ref()
+                .map(|m| ColourTargets::from_mapped(&content, m, white, st.cfg().colour_map.target_patch, &st.device)),
             _ => None,
         };
         matched += colour.as_ref().map_or(0.0, |c| c.matched_fraction / n as f32);

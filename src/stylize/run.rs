@@ -299,7 +299,7 @@ impl<'a> Stylization<'a> {
             cache.cells
         )));
         if colour {
-            // What L_color pulls each view towards, for inspection (small: one entry per 16x16 pixels).
+            // What L_color pulls each view towards, for inspection (small: one entry per target patch).
             let records: Vec<_> = guidance
                 .guides
                 .iter()

@@ -598,7 +598,7 @@ impl<'a> StyleStep<'a> {
                     }
                 }
                 if let Some(c) = guide.colour.as_ref().filter(|_| !smooth || self.cfg.colour_map.in_smooth_update) {
-                    let patches = losses::patch_means(image, tcm::COLOUR_PATCH);
+                    let patches = losses::patch_means(image, c.patch);
                     let mask = match l.colour_white_on {
                         WhiteOn::Content => c.mask.clone(),
                         WhiteOn::Render => c.mask.clone() * losses::not_white(patches.clone().detach(), l.colour_white),

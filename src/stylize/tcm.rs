@@ -189,7 +189,7 @@ impl Template {
     ) -> ColourTargets {
         let device = colour_descriptors.device();
         let (idx, sim) = nearest_by_dot(colour_descriptors, self.colour_keys.clone(), chunk);
-        let background = white_patches(content, white, &device);
+        let background = white_patches(content, white, COLOUR_PATCH, &device);
         let mask: Vec<f32> = sim
             .iter()
             .zip(&background)
@@ -203,6 +203,7 @@ impl Template {
             source: idx,
             mask: floats(mask, [n, 1], &device),
             matched_fraction: matched as f32 / n.max(1) as f32,
+            patch: COLOUR_PATCH,
         }
     }
 }
@@ -217,22 +218,28 @@ pub struct ColourTargets {
     /// references' relu5 positions, row-major, one reference after another).
     pub source: Vec<usize>,
     pub matched_fraction: f32,
+    /// Pixels per target patch side: `COLOUR_PATCH` (relu5) for matched
+    /// targets, `[colour_map] target_patch` for the colour map's.
+    pub patch: usize,
 }
 
-/// Per colour patch of `content`: whether its mean is near white (above
-/// `white` in every channel: background, no colour loss there).
-fn white_patches(content: &Image, white: Option<f32>, device: &Device) -> Vec<bool> {
-    let own = to_vec(patch_means(content.tensor(device), COLOUR_PATCH));
+/// Per `patch`-sized block of `content`: whether its mean is near white
+/// (above `white` in every channel: background, no colour loss there).
+fn white_patches(content: &Image, white: Option<f32>, patch: usize, device: &Device) -> Vec<bool> {
+    let own = to_vec(patch_means(content.tensor(device), patch));
     own.chunks_exact(3).map(|p| white.is_some_and(|w| p.iter().all(|&v| v > w))).collect()
 }
 
 /// One view's colour targets as written to `colour_targets.json`: row-major
-/// over the relu5 grid (one position per 16x16 pixels), `null` where the
-/// position is not supervised.
+/// over the grid of target patches (`patch` x `patch` pixels each; 16, the
+/// relu5 grid, for matched targets), `null` where the position is not
+/// supervised.
 #[derive(Debug, Clone, Serialize)]
 pub struct ViewColourTargets {
     pub view: usize,
-    /// `[columns, rows]` of the relu5 grid.
+    /// Pixels per patch side.
+    pub patch: usize,
+    /// `[columns, rows]` of the patch grid.
     pub positions: [usize; 2],
     pub matched_fraction: f32,
     pub targets: Vec<Option<[f32; 3]>>,
@@ -241,14 +248,21 @@ pub struct ViewColourTargets {
 }
 
 impl ColourTargets {
-    /// Targets from the colour map: each relu5 patch's mean of `mapped`
-    /// (the view's content render through `colour_map::ColourMap`),
-    /// supervised where the content patch is not background (`white`).
-    /// No template position is their source (`source` is empty).
-    pub fn from_mapped(content: &Image, mapped: &Image, white: Option<f32>, device: &Device) -> ColourTargets {
-        let target = patch_means(mapped.tensor(device), COLOUR_PATCH);
+    /// Targets from the colour map: the mean of `mapped` (the view's
+    /// content render through `colour_map::ColourMap`) over each `patch` x
+    /// `patch` block, supervised where the content's block is not
+    /// background (`white`). No template position is their source (`source`
+    /// is empty).
+    pub fn from_mapped(
+        content: &Image,
+        mapped: &Image,
+        white: Option<f32>,
+        patch: usize,
+        device: &Device,
+    ) -> ColourTargets {
+        let target = patch_means(mapped.tensor(device), patch);
         let mask: Vec<f32> =
-            white_patches(content, white, device).into_iter().map(|b| if b { 0.0 } else { 1.0 }).collect();
+            white_patches(content, white, patch, device).into_iter().map(|b| if b { 0.0 } else { 1.0 }).collect();
         let n = mask.len();
         let matched = mask.iter().filter(|&&m| m > 0.0).count();
         ColourTargets {
@@ -256,11 +270,13 @@ impl ColourTargets {
             source: Vec::new(),
             mask: floats(mask, [n, 1], device),
             matched_fraction: matched as f32 / n.max(1) as f32,
+            patch,
         }
     }
 
     pub fn to_record(&self, view: usize, width: usize, height: usize) -> ViewColourTargets {
-        let [rows, cols] = block_size(&RELU5, height, width);
+        // The relu5 grid is floor(size / 16) per axis, as `patch_means` is for any patch.
+        let [rows, cols] = [height / self.patch, width / self.patch];
         let target = to_vec(self.target.clone());
         let mask = to_vec(self.mask.clone());
         let targets = mask
@@ -269,6 +285,53 @@ impl ColourTargets {
             .map(|(i, &m)| (m > 0.0).then(|| [target[i * 3], target[i * 3 + 1], target[i * 3 + 2]]))
             .collect();
         let sources = mask.iter().zip(&self.source).map(|(&m, &s)| (m > 0.0).then_some(s)).collect();
-        ViewColourTargets { view, positions: [cols, rows], matched_fraction: self.matched_fraction, targets, sources }
+        ViewColourTargets {
+            view,
+            patch: self.patch,
+            positions: [cols, rows],
+            matched_fraction: self.matched_fraction,
+            targets,
+            sources,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::test_support::device;
+
+    /// The colour map's targets at `target_patch` 4 on an 8x8 view: four
+    /// patches, each the mean of its block of the mapped render, the white
+    /// block of the content unsupervised, and the record's grid 2x2.
+    #[test]
+    fn mapped_targets_are_block_means_at_the_configured_patch() {
+        let d = device();
+        let block = |x: usize, y: usize| (y / 4) * 2 + x / 4;
+        let pixel = |img: &mut Vec<f32>, c: [f32; 3]| img.extend_from_slice(&c);
+        let (mut content, mut mapped) = (Vec::new(), Vec::new());
+        for y in 0..8 {
+            for x in 0..8 {
+                let b = block(x, y);
+                pixel(&mut content, if b == 3 { [1.0; 3] } else { [0.2 * b as f32, 0.5, 0.1] });
+                // Alternating columns around the block's colour: the mean is the colour.
+                let s = if x % 2 == 0 { 0.05 } else { -0.05 };
+                pixel(&mut mapped, [0.1 * b as f32 + 0.3 + s, 0.4, 0.6 - s]);
+            }
+        }
+        let (content, mapped) = (Image::new(8, 8, content), Image::new(8, 8, mapped));
+        let t = ColourTargets::from_mapped(&content, &mapped, Some(0.99), 4, &d);
+        assert_eq!(t.target.dims(), [4, 3]);
+        let target = to_vec(t.target.clone());
+        for b in 0..4 {
+            let want = [0.1 * b as f32 + 0.3, 0.4, 0.6];
+            for c in 0..3 {
+                assert!((target[b * 3 + c] - want[c]).abs() < 1e-5, "block {b}: {:?}", &target[b * 3..b * 3 + 3]);
+            }
+        }
+        assert_eq!(to_vec(t.mask.clone()), vec![1.0, 1.0, 1.0, 0.0]);
+        let record = t.to_record(0, 8, 8);
+        assert_eq!((record.patch, record.positions), (4, [2, 2]));
+        assert!(record.targets[3].is_none() && record.targets[0].is_some());
     }
 }
