@@ -46,7 +46,7 @@ for RUN in "$@"; do
   d="$OUT/$name"
   mkdir -p "$d"
   "$BIN" export "$RUN" --format cameras --out "$d/cameras.json" >/dev/null
-  "$BIN" render --ckpt "$RUN" --path test --out "$d/render" >/dev/null
+  "$BIN" render --run "$RUN" --path test --out "$d/render" >/dev/null
   "$BIN" export "$RUN" --format splat --out "$d/splats.ply"
   degree="$(python3 -c "h=open('$d/splats.ply','rb').read(4000).decode('latin1'); print({0:0,9:1,24:2,45:3}[h.count('f_rest_')])")"
   for mode in antialiased plain; do

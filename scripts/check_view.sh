@@ -45,7 +45,7 @@ start() {
 "$BIN" export "$STYLIZED" --format cameras --out "$OUT/cameras.json" >/dev/null
 for name in stylized photo; do
   run="$STYLIZED"; [ $name = photo ] && run="$PHOTO"
-  "$BIN" render --ckpt "$run" --path test --out "$OUT/render-$name" >/dev/null
+  "$BIN" render --run "$run" --path test --out "$OUT/render-$name" >/dev/null
 done
 
 start "$OUT/server.log" "$BIN" view "$STYLIZED" "$PHOTO" --port 0

@@ -23,7 +23,7 @@ shared=${REFNPR_SHARED_DATA:-../shared/data}
 mkdir -p "$out"
 if [ -n "${BIN:-}" ]; then bin=$BIN; else cargo build --quiet; bin=target/debug/refnpr; fi
 epochs=()
-[ -n "${EPOCHS:-}" ] && epochs=(--epochs "$EPOCHS")
+[ -n "${EPOCHS:-}" ] && epochs=(--image-epochs "$EPOCHS")
 
 gt=()
 case "$scene" in
@@ -46,7 +46,7 @@ if [ ! -f "$out/case/style.png" ]; then
     cp assets/cases/demo_repaint/reference.toml "$out/case/"
     cp "$out/scene/stylized/train/r_0.png" "$out/case/style.png"
   else
-    $bin reference --ckpt "$out/photo" --view train:0 --out "$out/case"
+    $bin reference --run "$out/photo" --view train:0 --out "$out/case"
     $bin paint --input "$out/case/content.png" --out "$out/case/style.png" --seed 7
   fi
 fi
@@ -64,7 +64,7 @@ for row in "${rows[@]}"; do
     # A row killed midway continues from its resume.bin.
     [ -f "$run/resume.bin" ] && extra+=(--resume)
     echo "== $row" >&2
-    $bin stylize --photo "$out/photo" --reference "$out/case" --out "$run" --backend "$backend" --no-render "${extra[@]}" "${epochs[@]}"
+    $bin stylize --run "$out/photo" --reference "$out/case" --out "$run" --backend "$backend" --no-render "${extra[@]}" "${epochs[@]}"
   fi
   [ -f "$run/eval.json" ] || $bin eval --run "$run" --reference "$out/case" "${gt[@]}" --backend "$backend" --out "$run/eval.json" > /dev/null
 done

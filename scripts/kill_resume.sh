@@ -32,7 +32,7 @@ EOF
 }
 
 stylize() { # OUT [--resume]
-  "$bin" stylize --photo "$photo" --reference "$case_dir" --config "$config" --no-render --backend flex --out "$@"
+  "$bin" stylize --run "$photo" --reference "$case_dir" --config "$config" --no-render --backend flex --out "$@"
 }
 
 rm -rf "$work/whole"
@@ -48,7 +48,7 @@ for k in $(seq 1 "$n"); do
   rm -rf "$out"
   at=$(python3 -c "import random; print(round($total * ($k - 1 + random.random()) / $n, 1))")
   # exec: the background job's pid is refnpr's own, the process killed.
-  (exec "$bin" stylize --photo "$photo" --reference "$case_dir" --config "$config" --no-render --backend flex \
+  (exec "$bin" stylize --run "$photo" --reference "$case_dir" --config "$config" --no-render --backend flex \
     --out "$out" > "$out.log" 2>&1) &
   pid=$!
   sleep "$at"

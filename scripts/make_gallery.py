@@ -9,7 +9,7 @@ demo_novel_views.png (photoreal orbit frames above the stylized ones at the
 same cameras), and the two orbit GIFs.
 
 From two stylizations of one real scene (Ref-NPR and ARF, same case),
-each rendered with `refnpr render --ckpt RUN --path test|spiral --out RUN/test`:
+each rendered with `refnpr render --run RUN --path test|spiral --out RUN/test`:
     python3 scripts/make_gallery.py --scene lego CASE REFNPR_RUN ARF_RUN
 writes lego_reference.png (content | reference), lego_test_views.png
 (four of the Ref-NPR renders above ARF's at the same cameras) and both

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The test suite on every backend (the README's test command).
 #   flex:    everything (unit tests, renderer, datasets, training, stylization, evaluation, demo, CLI), then examples/orbit.rs
+#            and the README's quick start (scripts/check_docs.py: also the README's length and every doc link)
 #   ndarray: renderer, grid, VGG16, the stylization losses / TCM / deferred back-propagation, the metrics, the notebook API
 #   wgpu:    the same plus training, through Mesa's software Vulkan when no GPU is present
 #   (end-to-end stylization and the demo run on flex only: VGG on lavapipe or ndarray is 10-100x slower)
@@ -15,6 +16,8 @@ echo "== formatting"
 cargo fmt --check
 echo "== layering (imports point down the stage table of src/lib.rs)"
 python3 scripts/check_layers.py
+echo "== docs: README.md at most 300 lines, every relative link in README.md and docs/ resolving"
+python3 scripts/check_docs.py
 echo "== dependency tree: licences, bans, sources (cargo-deny, deny.toml)"
 command -v cargo-deny >/dev/null 2>&1 || {
   echo "error: cargo-deny not found (install it with: cargo install --locked cargo-deny)" >&2
@@ -38,6 +41,12 @@ REFNPR_BACKEND=flex cargo test --all-targets
 echo "== the front API's example: procedural scene to stylized orbit (flex)"
 REFNPR_BACKEND=flex cargo run --example orbit -- target/example-orbit
 test -s target/example-orbit/orbit/path.gif
+
+echo "== the README's quick start, its commands read from README.md and run as written (flex)"
+rm -rf demo-out
+REFNPR_BACKEND=flex python3 scripts/check_docs.py --run-quickstart
+test -s demo-out/eval.json && test -s demo-out/stylized/splats.ply && test -s demo-out/site/index.html
+rm -rf demo-out
 
 echo "== exports in other tools: splats in a browser splat renderer, the mesh in three.js and trimesh (the example's runs)"
 BIN="target/${CARGO_BUILD_TARGET:+$CARGO_BUILD_TARGET/}debug/refnpr"

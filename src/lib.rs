@@ -55,6 +55,11 @@ pub mod view;
 #[cfg(test)]
 mod test_support;
 
+// The README's Rust example, compiled by `cargo test --doc` (the test command) so it cannot drift from the API.
+#[cfg(doctest)]
+#[doc = include_str!("../README.md")]
+pub struct ReadmeExamples;
+
 pub use notebook::{
     Error, Gallery, Photo, Plot, Reference, Registered, Scene, Stylized, Table, demo_configs, stylize_config,
     train_config,

@@ -106,6 +106,25 @@ intrinsics = { width = 32, height = 32, fx = 40.0, fy = 40.0, cx = 16.0, cy = 16
     let err = ViewSpec::Path(120).camera(&ds, 120).unwrap_err().to_string();
     assert!(err.contains("120 poses"), "{err}");
     assert!("side:3".parse::<ViewSpec>().is_err());
+
+    // A view by its image's file name: with or without folders and extension;
+    // a name the train and test splits share must say which.
+    let file = std::path::Path::new(&ds.train[3].name).file_name().unwrap().to_string_lossy().into_owned();
+    let in_folder = format!("train/{file}");
+    assert_eq!(ViewSpec::parse_in(&in_folder, &ds).unwrap(), ViewSpec::Train(3), "{}", ds.train[3].name);
+    let stem = std::path::Path::new(&file).file_stem().unwrap().to_string_lossy().into_owned();
+    assert_eq!(ViewSpec::parse_in(&format!("train/{stem}"), &ds).unwrap(), ViewSpec::Train(3));
+    let test_file = std::path::Path::new(&ds.test[1].name).file_name().unwrap().to_string_lossy().into_owned();
+    assert_eq!(ViewSpec::parse_in(&format!("test/{test_file}"), &ds).unwrap(), ViewSpec::Test(1));
+    assert_eq!(ViewSpec::parse_in("test:1", &ds).unwrap(), ViewSpec::Test(1));
+    let err = format!("{:#}", ViewSpec::parse_in("no_such_image.png", &ds).unwrap_err());
+    assert!(err.contains("6 training and 2 test images"), "{err}");
+    if ds.test.iter().any(|v| v.name.ends_with(&file) || v.name.ends_with(&stem)) {
+        let err = format!("{:#}", ViewSpec::parse_in(&stem, &ds).unwrap_err());
+        assert!(err.contains("train:3") && err.contains("say which"), "{err}");
+    } else {
+        assert_eq!(ViewSpec::parse_in(&stem, &ds).unwrap(), ViewSpec::Train(3));
+    }
     assert!("train:x".parse::<ViewSpec>().is_err());
 
     // A case made for another scene is reported.

@@ -189,6 +189,21 @@ fn a_checkpoint_streamed_in_blocks_is_a_safetensors_file_of_its_arrays() {
     assert_eq!(to_vec(ck.grid.sh), earlier.sh);
 }
 
+/// `train --resume --steps N`: the command's step count wins, so a finished
+/// run is extended to N; a count below the steps already done is refused.
+#[test]
+fn resuming_with_more_steps_extends_the_run() {
+    let t = TempDir::new("extend");
+    let ds = tiny_scene(&t.path().join("scene"));
+    let out = t.path().join("run");
+    let m = run_training(&ds, tiny_config(40), &out, common::backend(), false, &refnpr::Quiet).unwrap();
+    assert_eq!(m.steps, 40);
+    let m = run_training(&ds, tiny_config(60), &out, common::backend(), true, &refnpr::Quiet).unwrap();
+    assert_eq!(m.steps, 60, "the resumed run stopped at the checkpoint's step count");
+    let err = run_training(&ds, tiny_config(30), &out, common::backend(), true, &refnpr::Quiet).unwrap_err();
+    assert!(format!("{err:#}").contains("already at step 60"), "{err:#}");
+}
+
 #[test]
 fn a_resumed_run_ends_where_an_uninterrupted_one_does() {
     let t = TempDir::new("resume");

@@ -17,7 +17,7 @@ use refnpr::reference::case::{ReferenceCase, ViewSpec};
 use refnpr::reference::r3::RegisterParams;
 use refnpr::reference::registration;
 use refnpr::scene::data::{self, Dataset, procedural};
-use refnpr::stylize::config::StylizeConfig;
+use refnpr::stylize::config::{Preset, StylizeConfig};
 use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::{Method, StylizeJob};
 use refnpr::tools::info::SystemInfo;
@@ -25,8 +25,24 @@ use refnpr::tools::{bench, capture, demo, fuzz, paint};
 use refnpr::util::{config, files, image, profile};
 use refnpr::{BackendKind, Console, Progress};
 
+/// The pipeline in five lines, and the commands `--help` does not list.
+const WORKFLOW: &str = "\
+The workflow (`refnpr demo` runs it on the built-in scene):
+  1. refnpr train --data SCENE --out RUN          (photos first? refnpr capture PHOTOS --out SCENE)
+  2. refnpr reference --run RUN --view train:0 --out CASE    then paint CASE/content.png, save CASE/style.png
+  3. refnpr stylize --run RUN --reference CASE --out STYLE
+  4. refnpr render --run STYLE --path orbit --out FRAMES     (or export STYLE, view STYLE)
+  5. refnpr eval --run STYLE --reference CASE
+
+Developer commands: bench, bench-vgg, bench-stylize (speed), fuzz (parsers), info (what the build runs on)";
+
 #[derive(Parser)]
-#[command(name = "refnpr", version, about = "Reference-based non-photorealistic radiance fields (Ref-NPR) on Burn")]
+#[command(
+    name = "refnpr",
+    version,
+    about = "Paint one view of a 3D scene; refnpr stylizes every other view to match (Ref-NPR, on Burn)",
+    after_help = WORKFLOW
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -38,8 +54,8 @@ struct Cli {
 /// The inputs of the R³ and stylization commands.
 #[derive(clap::Args)]
 struct PhotoAndCase {
-    /// Photoreal run folder (or checkpoint file).
-    #[arg(long)]
+    /// Photoreal run folder (or its checkpoint file), as `refnpr train --out` wrote it.
+    #[arg(long = "run", alias = "photo", value_name = "RUN")]
     photo: PathBuf,
     /// Reference case folder (reference.toml or the authors' data_config.json).
     #[arg(long)]
@@ -51,103 +67,161 @@ struct PhotoAndCase {
 
 #[derive(Subcommand)]
 enum Command {
-    /// The demo: writes the procedural scene, fits it, renders an orbit (OUT/orbit/path.gif).
-    Demo {
-        #[arg(long, default_value = "demo-out")]
-        out: PathBuf,
-        #[arg(long, value_enum)]
-        backend: Option<BackendKind>,
-        /// Override the number of photoreal training steps.
-        #[arg(long)]
-        steps: Option<usize>,
-        /// Override the number of stylization image epochs.
-        #[arg(long)]
-        epochs: Option<usize>,
-    },
-    /// Renderer throughput (rays/s, forward and forward+backward) per backend and resolution.
-    Bench {
-        /// Backends to measure (default: all three).
-        #[arg(long, value_enum, value_delimiter = ',')]
-        backends: Option<Vec<BackendKind>>,
-        /// Grid resolutions.
-        #[arg(long, value_delimiter = ',', default_value = "128,256")]
-        res: Vec<usize>,
-        #[arg(long, default_value_t = 4096)]
-        rays: usize,
-        #[arg(long, default_value_t = 5)]
-        repeats: usize,
-        /// Also write the results as JSON here.
-        #[arg(long)]
-        json: Option<PathBuf>,
-    },
-    /// VGG16 forward and forward+backward milliseconds per backend and image size, with
-    /// onnxruntime's CPU forward on the same input as a yardstick.
-    BenchVgg {
-        /// Backends to measure (default: all three).
-        #[arg(long, value_enum, value_delimiter = ',')]
-        backends: Option<Vec<BackendKind>>,
-        /// Image sizes, WIDTHxHEIGHT.
-        #[arg(long, value_delimiter = ',', default_value = "256x256,504x378")]
-        sizes: Vec<String>,
-        /// Unmeasured passes first (kernel compilation, allocator warm-up).
-        #[arg(long, default_value_t = 1)]
-        warmup: usize,
-        #[arg(long, default_value_t = 3)]
-        repeats: usize,
-        /// Skip the onnxruntime yardstick (needs python3 with onnxruntime).
-        #[arg(long)]
-        no_onnxruntime: bool,
-        /// How the forward pass runs (default: staged).
-        #[arg(long, value_enum)]
-        forward: Option<refnpr::vgg::VggForward>,
-        /// Also write the results as JSON here.
-        #[arg(long)]
-        json: Option<PathBuf>,
-    },
-    /// A short stylization (a fraction of a refit epoch, one image epoch and, for Ref-NPR,
-    /// one smooth epoch) timed step by step: seconds per step and where they go, per phase.
-    BenchStylize {
-        #[command(flatten)]
-        inputs: PhotoAndCase,
-        /// Output run folder of the short stylization (stylize.json has every step's time).
+    /// Writes the built-in procedural scene (Blender layout, with depth, ids and a stylized twin).
+    Scene {
+        /// The folder to write (train it with `refnpr train --data OUT`).
         #[arg(long)]
         out: PathBuf,
-        /// TOML config, as for `stylize` (its schedule is shortened).
+        /// Seed of the scene's random layout and textures.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Square image size in pixels.
+        #[arg(long, default_value_t = 96)]
+        size: u32,
+    },
+    /// A dataset from a folder of photos, through COLMAP (installed separately:
+    /// `apt-get install colmap`): photos downsized, features, matching, mapping,
+    /// undistortion; writes OUT/images/ and OUT/sparse/ for `train --data OUT`.
+    Capture {
+        /// The folder of photos (PNG or JPEG, 20-100 of one scene).
+        photos: PathBuf,
+        /// The dataset folder to write (COLMAP's log: OUT/colmap.log).
+        #[arg(long)]
+        out: PathBuf,
+        /// Photos are downsized to this long side first (pixels).
+        #[arg(long, default_value_t = 800)]
+        max_side: u32,
+        /// COLMAP's camera model (SIMPLE_RADIAL, RADIAL, OPENCV, PINHOLE, ...).
+        #[arg(long, default_value = "SIMPLE_RADIAL")]
+        camera_model: String,
+        /// The photos come from several cameras or zoom settings (one camera each).
+        #[arg(long)]
+        several_cameras: bool,
+        /// The COLMAP executable.
+        #[arg(long, default_value = "colmap")]
+        colmap: PathBuf,
+        /// A dataset of the same photos with known poses: print the recovered
+        /// poses' error against it (views matched by file name).
+        #[arg(long)]
+        truth: Option<PathBuf>,
+    },
+    /// Fits the photoreal radiance field of a dataset (Blender, LLFF, NSVF, COLMAP, transforms.json; detected).
+    Train {
+        /// The dataset folder.
+        #[arg(long)]
+        data: PathBuf,
+        /// The run folder to write: checkpoint.bin, metrics.json, test/ renders.
+        #[arg(long)]
+        out: PathBuf,
+        /// TOML config; fields it leaves out take the defaults for the dataset kind.
         #[arg(long)]
         config: Option<PathBuf>,
-        #[arg(long, value_enum, default_value_t = Method::RefNpr)]
-        method: Method,
-        /// Ray epochs of the refit (a fraction of one: its steps all cost the same).
-        #[arg(long, default_value_t = 0.1)]
-        refit_epochs: f32,
-        /// Image epochs; with Ref-NPR and 2 or more, the last is the smooth update.
-        #[arg(long, default_value_t = 2)]
-        image_epochs: usize,
-        #[arg(long, value_enum)]
+        /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
+        #[arg(long, value_enum, env = "REFNPR_BACKEND")]
         backend: Option<BackendKind>,
-        /// Also write the results as JSON here.
+        /// Continue from OUT/checkpoint.bin if it exists (with --steps: extend the run to that many steps).
         #[arg(long)]
-        json: Option<PathBuf>,
+        resume: bool,
+        /// The number of steps ([optim] steps).
+        #[arg(long)]
+        steps: Option<usize>,
+    },
+    /// Renders a run (photoreal or stylized) along a camera path: OUT/rgb/, OUT/depth/, OUT/path.gif.
+    Render {
+        /// Run folder (or its checkpoint file), photoreal or stylized.
+        #[arg(long = "run", alias = "ckpt", value_name = "RUN")]
+        ckpt: PathBuf,
+        /// The cameras: the dataset's test or train views, a spiral (forward-facing scenes) or an orbit.
+        #[arg(long, value_enum, default_value_t = PathKind::Test)]
+        path: PathKind,
+        /// The folder to write the frames to.
+        #[arg(long)]
+        out: PathBuf,
+        /// Frames of a spiral / orbit path.
+        #[arg(long, default_value_t = 120)]
+        frames: usize,
+        /// Dataset folder (default: the one the run was trained on).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
+        #[arg(long, value_enum, env = "REFNPR_BACKEND")]
+        backend: Option<BackendKind>,
+    },
+    /// A contact sheet of a run's views (training and test photos, frames of the render path), each labelled
+    /// with the name `reference --view` takes: choose the view to paint by looking.
+    Views {
+        /// Run folder (or its checkpoint file).
+        #[arg(long = "run", alias = "ckpt", value_name = "RUN")]
+        run: PathBuf,
+        /// The PNG to write (default: RUN/views.png).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// The long side of each thumbnail, in pixels.
+        #[arg(long, default_value_t = 128)]
+        thumb: usize,
+        /// Thumbnails per row.
+        #[arg(long, default_value_t = 8)]
+        columns: usize,
+        /// Show every N-th of the render path's 120 frames (0: none; they are rendered from the field).
+        #[arg(long, default_value_t = 4)]
+        path_every: usize,
+        /// Dataset folder (default: the one the run was trained on).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
+        #[arg(long, value_enum, env = "REFNPR_BACKEND")]
+        backend: Option<BackendKind>,
     },
     /// Renders the content view I_R and its depth from a photoreal run and writes a
     /// reference-case skeleton: paint over OUT/content.png and save OUT/style.png.
     Reference {
-        /// Photoreal run folder (or checkpoint file).
-        #[arg(long)]
+        /// Photoreal run folder (or its checkpoint file).
+        #[arg(long = "run", alias = "ckpt", value_name = "RUN")]
         ckpt: PathBuf,
-        /// train:N | test:N | path:N (path = the standard render path, 120 poses).
+        /// train:N | test:N | path:N (path = the standard render path, 120 poses; `refnpr views` shows them all),
+        /// or a training or test image's file name (r_12.png, IMG_0042).
         #[arg(long)]
         view: String,
+        /// The reference case folder to write (content.png, depth, reference.toml).
         #[arg(long)]
         out: PathBuf,
         /// Dataset folder (default: the one the run was trained on).
         #[arg(long)]
         data: Option<PathBuf>,
     },
+    /// A quick painterly repaint of an image (e.g. a reference case's content.png) to try stylization without painting.
+    Paint {
+        /// The image to repaint (a case's content.png).
+        #[arg(long)]
+        input: PathBuf,
+        /// The painted image to write (a case's style.png).
+        #[arg(long)]
+        out: PathBuf,
+        /// Seed of the brush strokes.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// A colour grade instead of the painterly repaint (a recolouring reference).
+        #[arg(long, value_enum)]
+        grade: Option<paint::Grade>,
+    },
+    /// Copies a dataset folder with every image colour-graded: the intended result of a
+    /// reference graded the same way (`paint --grade`), for `eval --gt`.
+    Recolour {
+        /// The dataset folder (Blender or procedural layout).
+        #[arg(long)]
+        data: PathBuf,
+        /// The new folder.
+        #[arg(long)]
+        out: PathBuf,
+        /// The colour grade, as `paint --grade` applies it.
+        #[arg(long, value_enum)]
+        grade: paint::Grade,
+    },
     /// R³: registers the stylized reference colours onto every training ray.
     Register {
         #[command(flatten)]
         inputs: PhotoAndCase,
+        /// The folder to write: registration.bin, register.json, overlays/.
         #[arg(long)]
         out: PathBuf,
         #[command(flatten)]
@@ -158,23 +232,36 @@ enum Command {
     },
     /// Stylizes a photoreal run after a reference case (Ref-NPR), or after a style image (ARF).
     Stylize {
-        #[command(flatten)]
-        inputs: PhotoAndCase,
+        /// Photoreal run folder (or its checkpoint file), as `refnpr train --out` wrote it.
+        #[arg(long = "run", alias = "photo", value_name = "RUN")]
+        photo: PathBuf,
+        /// Reference case folder (reference.toml or the authors' data_config.json); ARF can take --style alone.
+        #[arg(long, required_unless_present = "style")]
+        reference: Option<PathBuf>,
+        /// Dataset folder (default: the one the photoreal run was trained on).
+        #[arg(long)]
+        data: Option<PathBuf>,
         /// Output run folder: checkpoint.bin (renders like any run), stylize.json, test/ renders.
         #[arg(long)]
         out: PathBuf,
         /// TOML config; fields it leaves out take the defaults of configs/stylize.toml.
-        #[arg(long)]
+        #[arg(long, conflicts_with = "preset")]
         config: Option<PathBuf>,
+        /// A named config instead of --config: paper (the defaults, 10 image epochs), fast (6), authors (their code's).
+        #[arg(long, value_enum)]
+        preset: Option<Preset>,
+        /// refnpr (Ref-NPR, the paper's method) or arf (the ARF baseline: style statistics, no reference view).
         #[arg(long, value_enum, default_value_t = Method::RefNpr)]
         method: Method,
-        /// ARF: a style image instead of the case's first reference.
+        /// ARF: a style image (any size) instead of the case's first reference; without --reference it
+        /// becomes a case of its own in OUT/style_case.
         #[arg(long)]
         style: Option<PathBuf>,
-        /// Override schedule.image_epochs.
-        #[arg(long)]
+        /// Stylization epochs ([schedule] image_epochs; the last quarter is the smooth update).
+        #[arg(long = "image-epochs", alias = "epochs")]
         epochs: Option<usize>,
-        #[arg(long, value_enum)]
+        /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
+        #[arg(long, value_enum, env = "REFNPR_BACKEND")]
         backend: Option<BackendKind>,
         /// Skip rendering the test views of the result.
         #[arg(long)]
@@ -192,7 +279,7 @@ enum Command {
     },
     /// Stylization metrics of a stylized run (with --reference), or PSNR / SSIM of a run's test views.
     Eval {
-        /// Run folder (or checkpoint file): a photoreal or a stylized run.
+        /// Run folder (or its checkpoint file): a photoreal or a stylized run.
         #[arg(long, alias = "ckpt")]
         run: PathBuf,
         /// The stylized run's reference case: stylization metrics (ref_lpips,
@@ -222,143 +309,15 @@ enum Command {
         /// The run's dataset folder, when it moved.
         #[arg(long)]
         data: Option<PathBuf>,
-        #[arg(long, value_enum)]
-        backend: Option<BackendKind>,
-    },
-    /// A quick painterly repaint of an image (e.g. a reference case's content.png) to try stylization without painting.
-    Paint {
-        #[arg(long)]
-        input: PathBuf,
-        #[arg(long)]
-        out: PathBuf,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// A colour grade instead of the painterly repaint (a recolouring reference).
-        #[arg(long, value_enum)]
-        grade: Option<paint::Grade>,
-    },
-    /// Copies a dataset folder with every image colour-graded: the intended result of a
-    /// reference graded the same way (`paint --grade`), for `eval --gt`.
-    Recolour {
-        /// The dataset folder (Blender or procedural layout).
-        #[arg(long)]
-        data: PathBuf,
-        /// The new folder.
-        #[arg(long)]
-        out: PathBuf,
-        #[arg(long, value_enum)]
-        grade: paint::Grade,
-    },
-    /// What this build runs on: backends, wgpu adapters, CPU threads and SIMD, memory, VGG16 weights.
-    Info {
-        /// Print JSON instead of text.
-        #[arg(long)]
-        json: bool,
-    },
-    /// Feeds a parser of outside input (or the command line itself) mutated real files
-    /// for a while: no input may panic or hang. Targets: npy, transforms, transforms_json, colmap_*, reference_toml,
-    /// data_config, train_config, stylize_config, checkpoint, registration, image, cli.
-    Fuzz {
-        target: String,
-        /// Stop after this many seconds...
-        #[arg(long, default_value_t = 60.0)]
-        seconds: f64,
-        /// ... or this many inputs.
-        #[arg(long, default_value_t = u64::MAX)]
-        cases: u64,
-        /// A case running longer than this is a hang (its input is saved, the run stops).
-        #[arg(long, default_value_t = 5.0)]
-        case_seconds: f64,
-        #[arg(long, default_value_t = 1)]
-        seed: u64,
-        /// The process's peak memory may not exceed this (a header claiming a huge size
-        /// must be refused before allocating).
-        #[arg(long, default_value_t = 256.0)]
-        memory_mb: f64,
-        /// Real scenes to add to the seed inputs, when the folder exists.
-        #[arg(long, default_value = "../shared/data")]
-        shared_data: PathBuf,
-    },
-    /// A dataset from a folder of photos, through COLMAP (installed separately:
-    /// `apt-get install colmap`): photos downsized, features, matching, mapping,
-    /// undistortion; writes OUT/images/ and OUT/sparse/ for `train --data OUT`.
-    Capture {
-        /// The folder of photos (PNG or JPEG, 20-100 of one scene).
-        photos: PathBuf,
-        /// The dataset folder to write (COLMAP's log: OUT/colmap.log).
-        #[arg(long)]
-        out: PathBuf,
-        /// Photos are downsized to this long side first (pixels).
-        #[arg(long, default_value_t = 800)]
-        max_side: u32,
-        /// COLMAP's camera model (SIMPLE_RADIAL, RADIAL, OPENCV, PINHOLE, ...).
-        #[arg(long, default_value = "SIMPLE_RADIAL")]
-        camera_model: String,
-        /// The photos come from several cameras or zoom settings (one camera each).
-        #[arg(long)]
-        several_cameras: bool,
-        /// The COLMAP executable.
-        #[arg(long, default_value = "colmap")]
-        colmap: PathBuf,
-        /// A dataset of the same photos with known poses: print the recovered
-        /// poses' error against it (views matched by file name).
-        #[arg(long)]
-        truth: Option<PathBuf>,
-    },
-    /// Writes the built-in procedural scene (Blender layout, with depth, ids and a stylized twin).
-    Scene {
-        #[arg(long)]
-        out: PathBuf,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// Square image size in pixels.
-        #[arg(long, default_value_t = 96)]
-        size: u32,
-    },
-    /// Fits a photorealistic radiance grid to a dataset.
-    Train {
-        #[arg(long)]
-        data: PathBuf,
-        #[arg(long)]
-        out: PathBuf,
-        /// TOML config; fields it leaves out take the defaults for the dataset kind.
-        #[arg(long)]
-        config: Option<PathBuf>,
-        /// flex | ndarray | wgpu (default: $REFNPR_BACKEND, else flex).
-        #[arg(long, value_enum)]
-        backend: Option<BackendKind>,
-        /// Continue from OUT/checkpoint.bin if it exists.
-        #[arg(long)]
-        resume: bool,
-        /// Override the number of steps.
-        #[arg(long)]
-        steps: Option<usize>,
-    },
-    /// Shows runs in the browser: a local page that ray-marches the field in WebGL2 as refnpr renders it,
-    /// reloading a run whose checkpoint changes (a fit or a stylization in progress).
-    View {
-        /// Run folders (or checkpoint files), photoreal or stylized: the page shows one and compares two.
-        #[arg(required = true)]
-        runs: Vec<PathBuf>,
-        /// The port (0: any free one).
-        #[arg(long, default_value_t = 8008)]
-        port: u16,
-        /// The address to listen on. Anything but 127.0.0.1 lets other machines see the runs.
-        #[arg(long, default_value = "127.0.0.1")]
-        host: String,
-        /// Write a self-contained folder (the page and the runs' data) for any static web host, and stop.
-        #[arg(long = "static", value_name = "DIR")]
-        static_dir: Option<PathBuf>,
-        /// Dataset folder for the cameras list (default: the one each run was trained on).
-        #[arg(long)]
-        data: Option<PathBuf>,
-        #[arg(long, value_enum)]
+        /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
+        #[arg(long, value_enum, env = "REFNPR_BACKEND")]
         backend: Option<BackendKind>,
     },
     /// Exports a run's field for other tools: Gaussian splats (3DGS PLY), a coloured mesh (glb or PLY), an MP4, surface points.
     Export {
         /// Run folder (or checkpoint file), photoreal or stylized.
         run: PathBuf,
+        /// splat (3DGS PLY), mesh (glb or PLY), video (MP4), points (PLY), cameras (JSON).
         #[arg(long, value_enum)]
         format: ExportFormat,
         /// Output file (default: RUN/splats.ply, mesh.glb, path.mp4, points.ply or cameras.json).
@@ -392,6 +351,7 @@ enum Command {
         /// Video: frames of an orbit or spiral.
         #[arg(long, default_value_t = 120)]
         frames: usize,
+        /// Video: frames per second.
         #[arg(long, default_value_t = 30)]
         fps: u32,
         /// Video: the frame width (default: the dataset's; the height keeps the aspect).
@@ -406,27 +366,160 @@ enum Command {
         /// Dataset folder (default: the one the run was trained on); read for video, points, cameras and --viewer-blur.
         #[arg(long)]
         data: Option<PathBuf>,
-        #[arg(long, value_enum)]
+        /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
+        #[arg(long, value_enum, env = "REFNPR_BACKEND")]
         backend: Option<BackendKind>,
     },
-    /// Renders a camera path from a trained run.
-    Render {
-        /// Run folder (or checkpoint file).
-        #[arg(long)]
-        ckpt: PathBuf,
-        #[arg(long, value_enum, default_value_t = PathKind::Test)]
-        path: PathKind,
-        #[arg(long)]
-        out: PathBuf,
-        /// Frames of a spiral / orbit path.
-        #[arg(long, default_value_t = 120)]
-        frames: usize,
-        /// Dataset folder (default: the one the run was trained on).
+    /// Shows runs in the browser: a local page that ray-marches the field in WebGL2 as refnpr renders it,
+    /// reloading a run whose checkpoint changes (a fit or a stylization in progress).
+    View {
+        /// Run folders (or checkpoint files), photoreal or stylized: the page shows one and compares two.
+        #[arg(required = true)]
+        runs: Vec<PathBuf>,
+        /// The port (0: any free one).
+        #[arg(long, default_value_t = 8008)]
+        port: u16,
+        /// The address to listen on. Anything but 127.0.0.1 lets other machines see the runs.
+        #[arg(long, default_value = "127.0.0.1")]
+        host: String,
+        /// Write a self-contained folder (the page and the runs' data) for any static web host, and stop.
+        #[arg(long = "static", value_name = "DIR")]
+        static_dir: Option<PathBuf>,
+        /// Dataset folder for the cameras list (default: the one each run was trained on).
         #[arg(long)]
         data: Option<PathBuf>,
-        #[arg(long, value_enum)]
+        /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
+        #[arg(long, value_enum, env = "REFNPR_BACKEND")]
         backend: Option<BackendKind>,
     },
+    /// The whole method on the built-in scene: writes it, fits the photoreal field, paints view 0 from the
+    /// scene's stylized twin, stylizes, renders orbits of both fields and scores the result against the twin.
+    Demo {
+        /// The folder to write: scene/, photo/, case/, stylized/, orbit/, eval.json.
+        #[arg(long, default_value = "demo-out")]
+        out: PathBuf,
+        /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
+        #[arg(long, value_enum, env = "REFNPR_BACKEND")]
+        backend: Option<BackendKind>,
+        /// Override the number of photoreal training steps.
+        #[arg(long)]
+        steps: Option<usize>,
+        /// Override the number of stylization image epochs.
+        #[arg(long = "image-epochs", alias = "epochs")]
+        epochs: Option<usize>,
+    },
+    /// Renderer throughput (rays/s, forward and forward+backward) per backend and resolution.
+    #[command(hide = true)]
+    Bench {
+        /// Backends to measure (default: all three).
+        #[arg(long, value_enum, value_delimiter = ',')]
+        backends: Option<Vec<BackendKind>>,
+        /// Grid resolutions.
+        #[arg(long, value_delimiter = ',', default_value = "128,256")]
+        res: Vec<usize>,
+        /// Rays per measured batch.
+        #[arg(long, default_value_t = 4096)]
+        rays: usize,
+        /// Measured repetitions (the median is reported).
+        #[arg(long, default_value_t = 5)]
+        repeats: usize,
+        /// Also write the results as JSON here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+    /// VGG16 forward and forward+backward milliseconds per backend and image size, with
+    /// onnxruntime's CPU forward on the same input as a yardstick.
+    #[command(hide = true)]
+    BenchVgg {
+        /// Backends to measure (default: all three).
+        #[arg(long, value_enum, value_delimiter = ',')]
+        backends: Option<Vec<BackendKind>>,
+        /// Image sizes, WIDTHxHEIGHT.
+        #[arg(long, value_delimiter = ',', default_value = "256x256,504x378")]
+        sizes: Vec<String>,
+        /// Unmeasured passes first (kernel compilation, allocator warm-up).
+        #[arg(long, default_value_t = 1)]
+        warmup: usize,
+        /// Measured repetitions (the median is reported).
+        #[arg(long, default_value_t = 3)]
+        repeats: usize,
+        /// Skip the onnxruntime yardstick (needs python3 with onnxruntime).
+        #[arg(long)]
+        no_onnxruntime: bool,
+        /// How the forward pass runs (default: staged).
+        #[arg(long, value_enum)]
+        forward: Option<refnpr::vgg::VggForward>,
+        /// Also write the results as JSON here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+    /// A short stylization (a fraction of a refit epoch, one image epoch and, for Ref-NPR,
+    /// one smooth epoch) timed step by step: seconds per step and where they go, per phase.
+    #[command(hide = true)]
+    BenchStylize {
+        #[command(flatten)]
+        inputs: PhotoAndCase,
+        /// Output run folder of the short stylization (stylize.json has every step's time).
+        #[arg(long)]
+        out: PathBuf,
+        /// TOML config, as for `stylize` (its schedule is shortened).
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// refnpr or arf.
+        #[arg(long, value_enum, default_value_t = Method::RefNpr)]
+        method: Method,
+        /// Ray epochs of the refit (a fraction of one: its steps all cost the same).
+        #[arg(long, default_value_t = 0.1)]
+        refit_epochs: f32,
+        /// Image epochs; with Ref-NPR and 2 or more, the last is the smooth update.
+        #[arg(long, default_value_t = 2)]
+        image_epochs: usize,
+        /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
+        #[arg(long, value_enum, env = "REFNPR_BACKEND")]
+        backend: Option<BackendKind>,
+        /// Also write the results as JSON here.
+        #[arg(long)]
+        json: Option<PathBuf>,
+    },
+    /// Feeds a parser of outside input (or the command line itself) mutated real files
+    /// for a while: no input may panic or hang.
+    #[command(hide = true)]
+    Fuzz {
+        /// The parser to fuzz.
+        #[arg(value_parser = clap::builder::PossibleValuesParser::new(fuzz_targets()))]
+        target: String,
+        /// Stop after this many seconds...
+        #[arg(long, default_value_t = 60.0)]
+        seconds: f64,
+        /// ... or this many inputs.
+        #[arg(long, default_value_t = u64::MAX)]
+        cases: u64,
+        /// A case running longer than this is a hang (its input is saved, the run stops).
+        #[arg(long, default_value_t = 5.0)]
+        case_seconds: f64,
+        /// Seed of the mutations.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// The process's peak memory may not exceed this (a header claiming a huge size
+        /// must be refused before allocating).
+        #[arg(long, default_value_t = 256.0)]
+        memory_mb: f64,
+        /// Real scenes to add to the seed inputs, when the folder exists.
+        #[arg(long, default_value = "../shared/data", hide = true)]
+        shared_data: PathBuf,
+    },
+    /// What this build runs on: backends, wgpu adapters, CPU threads and SIMD, memory, VGG16 weights.
+    #[command(hide = true)]
+    Info {
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+/// The fuzz targets: every parser of outside input, and the command line.
+fn fuzz_targets() -> Vec<&'static str> {
+    fuzz::TARGETS.iter().copied().chain(["cli"]).collect()
 }
 
 /// `refnpr fuzz`: one target, a JSON report; crashes make it fail.
@@ -553,7 +646,11 @@ fn run() -> Result<()> {
         Command::View { runs, port, host, static_dir, data, backend } => {
             run_view(&runs, port, &host, static_dir.as_deref(), data.as_deref(), backend, &progress)
         }
-        Command::Render { ckpt, path, out, frames, data, backend } => {
+        Command::Views { run, out, thumb, columns, path_every, data, backend } => {
+            let opts = refnpr::tools::views::SheetOptions { thumb, columns, path_every };
+            run_views(&run, out, &opts, data.as_deref(), backend, &progress)
+        }
+                Command::Render { ckpt, path, out, frames, data, backend } => {
             run_render(&ckpt, path, &out, frames, data.as_deref(), backend, &progress)
         }
     }
@@ -656,6 +753,31 @@ fn run_render(
     let cams = render_path::path_cameras(&dataset, path, frames)?;
     render_path::render_frames(&ck, &cams, out, progress)?;
     println!("rendered {} frames to {}", cams.len(), out.display());
+    Ok(())
+}
+
+/// `refnpr views`: the contact sheet.
+fn run_views(
+    run: &Path,
+    out: Option<PathBuf>,
+    opts: &refnpr::tools::views::SheetOptions,
+    data: Option<&Path>,
+    backend: Option<BackendKind>,
+    progress: &Console,
+) -> Result<()> {
+    let device = backend_or_env(backend, progress)?.device();
+    let (ck, dataset) = checkpoint::load_run(run, data, &device)?;
+    let sheet = refnpr::tools::views::contact_sheet(&ck, &dataset, opts, progress)?;
+    let out = out.unwrap_or_else(|| run_folder(run).join("views.png"));
+    sheet.save_png(&out)?;
+    println!(
+        "wrote {} ({} train, {} test views{}): pick one, then `refnpr reference --run {} --view NAME --out CASE`",
+        out.display(),
+        dataset.train.len(),
+        dataset.test.len(),
+        if opts.path_every > 0 { ", every path frame's label is its path:N" } else { "" },
+        run.display()
+    );
     Ok(())
 }
 
@@ -923,7 +1045,7 @@ fn run_register(
 
 fn run_reference(ckpt: &Path, view: &str, out: &Path, data: Option<PathBuf>) -> Result<()> {
     let (ck, dataset) = load_run(ckpt, data)?;
-    let spec: ViewSpec = view.parse()?;
+    let spec = ViewSpec::parse_in(view, &dataset)?;
     let content = registration::write_reference_skeleton(&ck, &dataset, &spec, out)?;
     println!("wrote {} (and depth.png, depth.npy, reference.toml)", content.display());
     println!("paint over it and save the result as {}", out.join("style.png").display());
@@ -934,9 +1056,12 @@ fn run_reference(ckpt: &Path, view: &str, out: &Path, data: Option<PathBuf>) -> 
 /// user gave (`--epochs`, and any R³ flag over the file's `[register]`).
 fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Progress) -> Result<()> {
     let Command::Stylize {
-        inputs,
+        photo,
+        reference,
+        data,
         out,
         config,
+        preset,
         method,
         style,
         epochs,
@@ -949,7 +1074,10 @@ fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Pr
     else {
         unreachable!("called for the stylize subcommand")
     };
-    let mut config = stylize_config(config.as_deref())?;
+    let mut config = match preset {
+        Some(p) => p.config()?,
+        None => stylize_config(config.as_deref())?,
+    };
     if let Some(e) = epochs {
         config.schedule.image_epochs = e;
     }
@@ -958,13 +1086,32 @@ fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Pr
     config.validate()?;
     let render_test = !no_render;
     let backend = backend_or_env(backend, progress)?;
-    let PhotoAndCase { photo, reference: case, data } = inputs;
+    let case = match (reference, &style) {
+        (Some(case), _) => case,
+        (None, Some(style)) if method == Method::Arf => style_only_case(style, &out)?,
+        (None, _) => bail!("--reference CASE is needed (only ARF stylizes from a --style image alone: add --method arf)"),
+    };
     let job = StylizeJob { photo, case, out, config, method, backend, style, data, registration, render_test, resume };
     let r = run_stylize(&job, progress)?;
     let phases: Vec<String> = r.seconds.iter().map(|(k, v)| format!("{k} {v:.1}s")).collect();
     println!("stylized ({}) in {:.1} s: {}", r.method, r.total_seconds, phases.join(", "));
-    println!("wrote {}/checkpoint.bin, stylize.json{}", job.out.display(), if render_test { ", test/" } else { "" });
+    let o = job.out.display();
+    println!("wrote {o}/checkpoint.bin, {o}/stylize.json{}", if render_test { format!(", {o}/test/path.gif") } else { String::new() });
+    println!("next: refnpr render --run {o} --path orbit --out {o}/orbit, refnpr view {o}, refnpr export {o} --format video");
     Ok(())
+}
+
+/// ARF from a style image alone: a reference case of that image at
+/// training view 0, written to `out/style_case` (ARF matches the image's
+/// statistics from every view; the view only places it for `refnpr eval`).
+fn style_only_case(style: &Path, out: &Path) -> Result<PathBuf> {
+    let dir = out.join("style_case");
+    let ext = style.extension().and_then(|e| e.to_str()).unwrap_or("png");
+    let name = format!("style.{ext}");
+    let bytes = std::fs::read(style).with_context(|| format!("cannot read the style image {}", style.display()))?;
+    files::write_bytes(&dir.join(&name), &bytes)?;
+    files::write_text(&dir.join("reference.toml"), &format!("[[reference]]\nstyle = \"{name}\"\nview = \"train:0\"\n"))?;
+    Ok(dir)
 }
 
 /// The stylize config of `--config` (the defaults without one).
@@ -1105,4 +1252,112 @@ fn keep_freed_memory() {
     unsafe {
         mi_option_set(MI_OPTION_PURGE_DELAY, -1)
     };
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The names of `cmd`'s arguments and subcommands that say nothing in `--help`.
+    fn without_help(cmd: &clap::Command, path: &str, missing: &mut Vec<String>) {
+        for arg in cmd.get_arguments() {
+            let id = arg.get_id().as_str();
+            if id != "help" && id != "version" && arg.get_help().is_none() && arg.get_long_help().is_none() {
+                missing.push(format!("{path} {id}"));
+            }
+        }
+        for sub in cmd.get_subcommands().filter(|c| c.get_name() != "help") {
+            let name = format!("{path} {}", sub.get_name());
+            if sub.get_about().is_none() {
+                missing.push(format!("{name} (the command itself)"));
+            }
+            without_help(sub, &name, missing);
+        }
+    }
+
+    #[test]
+    fn every_command_and_argument_has_a_help_line() {
+        let mut missing = Vec::new();
+        without_help(&Cli::command(), "refnpr", &mut missing);
+        assert!(missing.is_empty(), "no help text for: {missing:?}");
+    }
+
+    /// `refnpr --help` lists the user's commands in the order of the
+    /// pipeline; the developer's are named after the list.
+    #[test]
+    fn the_listed_commands_come_in_pipeline_order() {
+        let cli = Cli::command();
+        let listed: Vec<&str> = cli.get_subcommands().filter(|c| !c.is_hide_set()).map(|c| c.get_name()).collect();
+        let pipeline = [
+            "scene",
+            "capture",
+            "train",
+            "render",
+            "views",
+            "reference",
+            "paint",
+            "recolour",
+            "register",
+            "stylize",
+            "eval",
+            "export",
+            "view",
+            "demo",
+        ];
+        assert_eq!(listed, pipeline);
+        for developer in ["bench", "bench-vgg", "bench-stylize", "fuzz", "info"] {
+            assert!(WORKFLOW.contains(developer), "{developer} is hidden from the list and not named after it");
+            assert!(cli.find_subcommand(developer).is_some(), "{developer} is gone");
+        }
+    }
+
+    /// `--run` names a run folder everywhere; the old names still parse, so
+    /// scripts written for them keep working.
+    #[test]
+    fn old_flag_names_still_parse_as_the_new_ones() {
+        let parse = |line: &str| Cli::try_parse_from(line.split(' ')).map(|c| c.command);
+        for (new, old) in [
+            ("refnpr render --run r --out o", "refnpr render --ckpt r --out o"),
+            ("refnpr reference --run r --view train:0 --out o", "refnpr reference --ckpt r --view train:0 --out o"),
+            ("refnpr stylize --run r --reference c --out o", "refnpr stylize --photo r --reference c --out o"),
+            ("refnpr register --run r --reference c --out o", "refnpr register --photo r --reference c --out o"),
+            ("refnpr eval --run r --reference c", "refnpr eval --ckpt r --reference c"),
+        ] {
+            let (a, b) = (parse(new).expect(new), parse(old).expect(old));
+            assert_eq!(format!("{:?}", run_of(&a)), format!("{:?}", run_of(&b)), "{new} vs {old}");
+        }
+        let Ok(Command::Stylize { epochs, register, .. }) =
+            parse("refnpr stylize --photo r --reference c --out o --epochs 3 --erode 2")
+        else {
+            panic!("stylize with the old flag names did not parse")
+        };
+        assert_eq!((epochs, register.erode_reference), (Some(3), 2));
+    }
+
+    /// ARF takes a style image alone; Ref-NPR needs its reference case.
+    #[test]
+    fn a_style_image_stands_in_for_the_case_only_in_parsing_arf() {
+        let parse = |line: &str| Cli::try_parse_from(line.split(' ')).map(|c| c.command);
+        assert!(parse("refnpr stylize --run r --out o --method arf --style s.png").is_ok());
+        assert!(parse("refnpr stylize --run r --out o").is_err(), "neither --reference nor --style");
+        let t = std::env::temp_dir().join(format!("refnpr-style-only-{}", std::process::id()));
+        std::fs::create_dir_all(&t).unwrap();
+        std::fs::write(t.join("s.png"), b"not checked here").unwrap();
+        let case = style_only_case(&t.join("s.png"), &t.join("out")).unwrap();
+        let toml = std::fs::read_to_string(case.join("reference.toml")).unwrap();
+        assert!(toml.contains("style = \"style.png\"") && toml.contains("train:0"), "{toml}");
+        assert!(case.join("style.png").is_file());
+        std::fs::remove_dir_all(&t).ok();
+    }
+
+    /// The run folder a parsed command names.
+    fn run_of(command: &Command) -> Option<&Path> {
+        match command {
+            Command::Render { ckpt, .. } | Command::Reference { ckpt, .. } => Some(ckpt),
+            Command::Stylize { photo, .. } => Some(photo),
+            Command::Register { inputs, .. } => Some(&inputs.photo),
+            Command::Eval { run, .. } => Some(run),
+            _ => None,
+        }
+    }
 }

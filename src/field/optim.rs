@@ -335,7 +335,7 @@ impl RowSubset {
     /// Clears, then holds the distinct rows of all `lists` in increasing
     /// order, marked in a bitmap in parallel (a fern view's samples have
     /// tens of millions of corner entries; measured, this is not where a
-    /// fern step's `step_rows` time goes: see the README's fern profile).
+    /// fern step's `step_rows` time goes: see docs/performance.md).
     pub fn reset_to_union(&mut self, num_rows: usize, lists: &[&[i32]]) {
         self.reset_to_union_with_cells(num_rows, lists, &CellLattice::default(), &[]);
     }

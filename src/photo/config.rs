@@ -77,7 +77,7 @@ impl Default for OptimConfig {
             // Plenoxels' rates are density 30 -> ~1, SH 1e-2 -> ~1e-4 over
             // ~50x more rays than a run here: each voxel is updated a few
             // hundred times, and a higher, slower-decaying rate fits more
-            // (measured on lego and fern, README "Photorealistic fitting").
+            // (measured on lego and fern, docs/performance.md "Photorealistic fitting").
             lr_density: 30.0,
             lr_density_final: 5.0,
             lr_sh: 0.03,

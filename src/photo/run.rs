@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Result, ensure};
 use serde::{Deserialize, Serialize};
 
 use crate::field::checkpoint;
@@ -136,8 +136,26 @@ fn start(
     let device = backend.open(progress)?;
     match resume_from {
         Some(ckpt) => {
-            let t = Trainer::resume(dataset, ckpt, &device)?;
+            let mut t = Trainer::resume(dataset, ckpt, &device)?;
             progress.info(format!("resuming {} at step {}", ckpt.display(), t.step));
+            // The command's step count wins (the same command resumes where it
+            // stopped; a larger count extends a finished run); every other
+            // setting is the checkpoint's, which its grid was made with.
+            let wanted = config.optim.steps;
+            if wanted != t.config.optim.steps {
+                ensure!(
+                    wanted >= t.step,
+                    "{} is already at step {}: it cannot end at step {wanted} (ask for {} steps or more)",
+                    ckpt.display(),
+                    t.step,
+                    t.step
+                );
+                progress.info(format!(
+                    "extending the run from {} to {wanted} steps (its other settings are the checkpoint's)",
+                    t.config.optim.steps
+                ));
+                t.config.optim.steps = wanted;
+            }
             Ok(t)
         }
         None => Trainer::new(dataset, config, &device),

@@ -80,6 +80,50 @@ impl std::fmt::Display for ViewSpec {
 }
 
 impl ViewSpec {
+    /// `train:N`, `test:N`, `path:N`, or the file name of one of `dataset`'s
+    /// training or test images, with or without its extension and folders
+    /// (`r_12.png`, `test/r_12`, `IMG_0042`); a name two views share is
+    /// refused with both.
+    pub fn parse_in(s: &str, dataset: &Dataset) -> Result<ViewSpec> {
+        if s.contains(':') {
+            return s.parse();
+        }
+        // A view's name without "./" and its extension, '/'-separated.
+        let bare = |name: &str| {
+            let p = Path::new(name.trim_start_matches("./"));
+            let p = p.with_extension("");
+            p.to_string_lossy().replace('\\', "/")
+        };
+        let wanted = bare(s);
+        let names = |views: &[crate::scene::data::View], spec: fn(usize) -> ViewSpec| {
+            let wanted = wanted.clone();
+            views
+                .iter()
+                .enumerate()
+                .filter(move |(_, v)| {
+                    let b = bare(&v.name);
+                    !wanted.is_empty() && (b == wanted || b.ends_with(&format!("/{wanted}")))
+                })
+                .map(move |(i, _)| spec(i))
+                .collect::<Vec<_>>()
+        };
+        let mut found = names(&dataset.train, ViewSpec::Train);
+        found.extend(names(&dataset.test, ViewSpec::Test));
+        match found.len() {
+            1 => Ok(found.remove(0)),
+            0 => bail!(
+                "view {s:?}: expected train:N, test:N or path:N, or the file name of a training or test image \
+                 (none of the {} training and {} test images is named so; `refnpr views` shows them)",
+                dataset.train.len(),
+                dataset.test.len()
+            ),
+            _ => {
+                let all: Vec<String> = found.iter().map(ToString::to_string).collect();
+                bail!("view {s:?} names {} images ({}): say which, e.g. {}", found.len(), all.join(", "), all[0])
+            }
+        }
+    }
+
     /// The camera this spec names in `dataset`.
     pub fn camera(&self, dataset: &Dataset, path_frames: usize) -> Result<Camera> {
         let pick = |views: &[crate::scene::data::View], i: usize, what: &str| -> Result<Camera> {

@@ -60,7 +60,7 @@ pub struct RegisterParams {
     pub cap_to_footprint: bool,
     /// Erode the reference's hit mask this many times (3x3) before storing:
     /// drops silhouette pixels whose depth mixes foreground and background.
-    #[arg(long = "erode", default_value_t = RegisterParams::default().erode_reference)]
+    #[arg(long = "erode-reference", alias = "erode", default_value_t = RegisterParams::default().erode_reference)]
     pub erode_reference: usize,
 }
 

@@ -397,6 +397,31 @@ impl Default for StylizeConfig {
     }
 }
 
+/// Named stylize configurations (`refnpr stylize --preset`), compiled in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Preset {
+    /// The defaults (`configs/stylize.toml`): the paper's full schedule, 10 image epochs.
+    Paper,
+    /// A shorter schedule, 6 image epochs (`configs/demo_stylize.toml`, the demo's).
+    Fast,
+    /// The authors' released code as closely as this design allows (`configs/stylize_authors.toml`).
+    Authors,
+}
+
+impl Preset {
+    pub fn config(self) -> Result<StylizeConfig> {
+        match self {
+            Preset::Paper => Ok(StylizeConfig::default()),
+            Preset::Fast => {
+                StylizeConfig::from_toml_str(include_str!("../../configs/demo_stylize.toml"), "the fast preset")
+            }
+            Preset::Authors => {
+                StylizeConfig::from_toml_str(include_str!("../../configs/stylize_authors.toml"), "the authors preset")
+            }
+        }
+    }
+}
+
 impl StylizeConfig {
     /// Parses TOML over the defaults and validates.
     pub fn from_toml_str(text: &str, source: &str) -> Result<Self> {
@@ -450,5 +475,21 @@ impl StylizeConfig {
         ensure!((0.0..1.0).contains(&self.min_sample_weight), "min_sample_weight must be in [0, 1)");
         self.colour_map.validate()?;
         self.register.validate()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The compiled-in presets parse, and each is what its help says.
+    #[test]
+    fn presets_parse_and_are_what_they_say() {
+        let paper = Preset::Paper.config().unwrap();
+        assert_eq!(paper.schedule.image_epochs, 10);
+        assert_eq!(Preset::Fast.config().unwrap().schedule.image_epochs, 6);
+        let authors = Preset::Authors.config().unwrap();
+        assert_eq!(authors.colour_corners, ColourCorners::Zero, "the authors' svox2 corners");
+        assert!(!authors.colour_map.init_field && !authors.colour_map.colour_targets, "the authors' method has no colour map");
     }
 }

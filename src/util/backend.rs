@@ -132,7 +132,7 @@ pub struct AdapterSummary {
 
 /// How much slower than flex wgpu runs on a software adapter, as measured
 /// on the 2-core machine this project is built on with Mesa's lavapipe
-/// (README, "wgpu without a GPU"): training steps 19086 vs 2770 rays/s
+/// (docs/performance.md, "wgpu without a GPU"): training steps 19086 vs 2770 rays/s
 /// (6.9x), renderer forward + backward at 128³ 50076 vs 4292 rays/s (11.7x).
 pub const SOFTWARE_ADAPTER_SLOWDOWN: &str = "7-12x";
 

@@ -9,6 +9,7 @@ pub(crate) mod diverged;
 pub mod files;
 pub mod image;
 pub mod input;
+pub mod label;
 pub mod lock;
 pub mod memory;
 pub mod metrics;

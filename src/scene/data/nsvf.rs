@@ -5,7 +5,7 @@
 //! turned into the OpenGL convention. The scene is normalised so that the
 //! foreground box (from `bbox.txt`, else around the cameras' focus) is
 //! [-1, 1]^3: the radiance grid covers that box, and everything outside it is
-//! left to the background model (see `background` in the README's design
+//! left to the background model (see `background` in docs/architecture.md's design
 //! section: a constant colour blended with the remaining transmittance).
 
 use super::{Dataset, DatasetKind, LoadOptions, View, check_pose, check_sizes, read_rgb};
