@@ -109,12 +109,12 @@ intrinsics = { width = 32, height = 32, fx = 40.0, fy = 40.0, cx = 16.0, cy = 16
 
     // A view by its image's file name: with or without folders and extension;
     // a name the train and test splits share must say which.
-    let file = std::path::Path::new(&ds.train[3].name).file_name().unwrap().to_string_lossy().into_owned();
+    let file = Path::new(&ds.train[3].name).file_name().unwrap().to_string_lossy().into_owned();
     let in_folder = format!("train/{file}");
     assert_eq!(ViewSpec::parse_in(&in_folder, &ds).unwrap(), ViewSpec::Train(3), "{}", ds.train[3].name);
-    let stem = std::path::Path::new(&file).file_stem().unwrap().to_string_lossy().into_owned();
+    let stem = Path::new(&file).file_stem().unwrap().to_string_lossy().into_owned();
     assert_eq!(ViewSpec::parse_in(&format!("train/{stem}"), &ds).unwrap(), ViewSpec::Train(3));
-    let test_file = std::path::Path::new(&ds.test[1].name).file_name().unwrap().to_string_lossy().into_owned();
+    let test_file = Path::new(&ds.test[1].name).file_name().unwrap().to_string_lossy().into_owned();
     assert_eq!(ViewSpec::parse_in(&format!("test/{test_file}"), &ds).unwrap(), ViewSpec::Test(1));
     assert_eq!(ViewSpec::parse_in("test:1", &ds).unwrap(), ViewSpec::Test(1));
     let err = format!("{:#}", ViewSpec::parse_in("no_such_image.png", &ds).unwrap_err());
