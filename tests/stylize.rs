@@ -575,14 +575,16 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
         assert!(json["seconds"][k].as_f64().is_some(), "seconds.{k}");
     }
     assert!(json["transfers"]["refit"]["per_step"]["reads"].as_u64().is_some());
-    // L_color's targets: one record per training view, a 4x4 relu5 grid at
-    // 64 px; the reference view (0) is supervised with its own style colours.
+    // L_color's targets: one record per training view, a grid of 64 px / the
+    // record's patch per axis (the configured `target_patch`); the reference
+    // view (0) is supervised with its own style colours.
     let targets: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("colour_targets.json")).unwrap()).unwrap();
     let targets = targets.as_array().unwrap();
     assert_eq!(targets.len(), 16);
-    assert_eq!(targets[0]["positions"], serde_json::json!([4, 4]));
-    assert!(targets.iter().all(|r| r["targets"].as_array().unwrap().len() == 16));
+    let side = 64 / targets[0]["patch"].as_u64().unwrap() as usize;
+    assert_eq!(targets[0]["positions"], serde_json::json!([side, side]));
+    assert!(targets.iter().all(|r| r["targets"].as_array().unwrap().len() == side * side));
     let supervised = targets[0]["targets"].as_array().unwrap().iter().filter(|t| !t.is_null()).count();
     assert!(supervised > 0, "the reference view matches itself");
     // Where the reference view is supervised, its targets come from its own positions.
