@@ -650,7 +650,7 @@ fn run() -> Result<()> {
             let opts = refnpr::tools::views::SheetOptions { thumb, columns, path_every };
             run_views(&run, out, &opts, data.as_deref(), backend, &progress)
         }
-                Command::Render { ckpt, path, out, frames, data, backend } => {
+        Command::Render { ckpt, path, out, frames, data, backend } => {
             run_render(&ckpt, path, &out, frames, data.as_deref(), backend, &progress)
         }
     }
@@ -1089,15 +1089,22 @@ fn run_stylize_command(command: Command, matches: &ArgMatches, progress: &dyn Pr
     let case = match (reference, &style) {
         (Some(case), _) => case,
         (None, Some(style)) if method == Method::Arf => style_only_case(style, &out)?,
-        (None, _) => bail!("--reference CASE is needed (only ARF stylizes from a --style image alone: add --method arf)"),
+        (None, _) => {
+            bail!("--reference CASE is needed (only ARF stylizes from a --style image alone: add --method arf)")
+        }
     };
     let job = StylizeJob { photo, case, out, config, method, backend, style, data, registration, render_test, resume };
     let r = run_stylize(&job, progress)?;
     let phases: Vec<String> = r.seconds.iter().map(|(k, v)| format!("{k} {v:.1}s")).collect();
     println!("stylized ({}) in {:.1} s: {}", r.method, r.total_seconds, phases.join(", "));
     let o = job.out.display();
-    println!("wrote {o}/checkpoint.bin, {o}/stylize.json{}", if render_test { format!(", {o}/test/path.gif") } else { String::new() });
-    println!("next: refnpr render --run {o} --path orbit --out {o}/orbit, refnpr view {o}, refnpr export {o} --format video");
+    println!(
+        "wrote {o}/checkpoint.bin, {o}/stylize.json{}",
+        if render_test { format!(", {o}/test/path.gif") } else { String::new() }
+    );
+    println!(
+        "next: refnpr render --run {o} --path orbit --out {o}/orbit, refnpr view {o}, refnpr export {o} --format video"
+    );
     Ok(())
 }
 
@@ -1110,7 +1117,10 @@ fn style_only_case(style: &Path, out: &Path) -> Result<PathBuf> {
     let name = format!("style.{ext}");
     let bytes = std::fs::read(style).with_context(|| format!("cannot read the style image {}", style.display()))?;
     files::write_bytes(&dir.join(&name), &bytes)?;
-    files::write_text(&dir.join("reference.toml"), &format!("[[reference]]\nstyle = \"{name}\"\nview = \"train:0\"\n"))?;
+    files::write_text(
+        &dir.join("reference.toml"),
+        &format!("[[reference]]\nstyle = \"{name}\"\nview = \"train:0\"\n"),
+    )?;
     Ok(dir)
 }
 

@@ -490,6 +490,9 @@ mod tests {
         assert_eq!(Preset::Fast.config().unwrap().schedule.image_epochs, 6);
         let authors = Preset::Authors.config().unwrap();
         assert_eq!(authors.colour_corners, ColourCorners::Zero, "the authors' svox2 corners");
-        assert!(!authors.colour_map.init_field && !authors.colour_map.colour_targets, "the authors' method has no colour map");
+        assert!(
+            !authors.colour_map.init_field && !authors.colour_map.colour_targets,
+            "the authors' method has no colour map"
+        );
     }
 }

@@ -42,7 +42,12 @@ const INK: [f32; 3] = [1.0; 3];
 
 /// The sheet: the training photos, the test photos, then renders of the
 /// standard render path (`path:N`) from the run's field.
-pub fn contact_sheet(ck: &Checkpoint, dataset: &Dataset, opts: &SheetOptions, progress: &dyn Progress) -> Result<Image> {
+pub fn contact_sheet(
+    ck: &Checkpoint,
+    dataset: &Dataset,
+    opts: &SheetOptions,
+    progress: &dyn Progress,
+) -> Result<Image> {
     ensure!(opts.thumb >= 16 && opts.thumb <= 1024, "--thumb {} is outside 16..=1024 pixels", opts.thumb);
     ensure!(opts.columns >= 1, "--columns must be at least 1");
     let mut tiles: Vec<Tile> = Vec::new();

@@ -49,14 +49,17 @@ pub fn text_size(text: &str, scale: usize) -> (usize, usize) {
 /// the image's edges. Refuses characters the font does not have.
 pub fn draw_text(img: &mut Image, text: &str, x: usize, y: usize, scale: usize, colour: [f32; 3]) -> Result<()> {
     for (k, c) in text.chars().enumerate() {
-        let Some(rows) = glyph(c) else { bail!("the label font has no {c:?} (labels use a-z of train/test/path, digits, ':')") };
+        let Some(rows) = glyph(c) else {
+            bail!("the label font has no {c:?} (labels use a-z of train/test/path, digits, ':')")
+        };
         let left = x + k * (GLYPH_W + 1) * scale;
         for (gy, bits) in rows.iter().enumerate() {
             for gx in 0..GLYPH_W {
                 if bits & (0x10 >> gx) == 0 {
                     continue;
                 }
-                for (py, px) in (0..scale * scale).map(|i| (y + gy * scale + i / scale, left + gx * scale + i % scale)) {
+                for (py, px) in (0..scale * scale).map(|i| (y + gy * scale + i / scale, left + gx * scale + i % scale))
+                {
                     if px < img.width && py < img.height {
                         let at = (py * img.width + px) * 3;
                         img.rgb[at..at + 3].copy_from_slice(&colour);
