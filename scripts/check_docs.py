@@ -13,6 +13,7 @@
 Exit status 1 with one line per problem.
 """
 
+import functools
 import re
 import subprocess
 import sys
@@ -43,6 +44,7 @@ def slug(heading):
     return text.replace(" ", "-")
 
 
+@functools.lru_cache(maxsize=None)
 def anchors(path):
     found, seen = set(), {}
     for line in without_code(path.read_text()).split("\n"):

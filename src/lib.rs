@@ -55,14 +55,10 @@ pub mod view;
 #[cfg(test)]
 mod test_support;
 
-// The Rust examples of the README and the library guide, compiled by `cargo test --doc` (the test command)
-// so they cannot drift from the API.
+// The README's Rust example, compiled by `cargo test --doc` (the test command) so it cannot drift from the API.
 #[cfg(doctest)]
 #[doc = include_str!("../README.md")]
 pub struct ReadmeExamples;
-#[cfg(doctest)]
-#[doc = include_str!("../docs/library.md")]
-pub struct LibraryGuideExamples;
 
 pub use notebook::{
     Error, Gallery, Photo, Plot, Reference, Registered, Scene, Stylized, Table, demo_configs, stylize_config,

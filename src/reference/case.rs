@@ -95,20 +95,14 @@ impl ViewSpec {
             p.to_string_lossy().replace('\\', "/")
         };
         let wanted = bare(s);
-        let names = |views: &[crate::scene::data::View], spec: fn(usize) -> ViewSpec| {
-            let wanted = wanted.clone();
-            views
-                .iter()
-                .enumerate()
-                .filter(move |(_, v)| {
-                    let b = bare(&v.name);
-                    !wanted.is_empty() && (b == wanted || b.ends_with(&format!("/{wanted}")))
-                })
-                .map(move |(i, _)| spec(i))
-                .collect::<Vec<_>>()
+        let suffix = format!("/{wanted}");
+        let named = |v: &crate::scene::data::View| {
+            let b = bare(&v.name);
+            !wanted.is_empty() && (b == wanted || b.ends_with(&suffix))
         };
-        let mut found = names(&dataset.train, ViewSpec::Train);
-        found.extend(names(&dataset.test, ViewSpec::Test));
+        let train = dataset.train.iter().enumerate().filter(|(_, v)| named(v)).map(|(i, _)| ViewSpec::Train(i));
+        let test = dataset.test.iter().enumerate().filter(|(_, v)| named(v)).map(|(i, _)| ViewSpec::Test(i));
+        let mut found: Vec<ViewSpec> = train.chain(test).collect();
         match found.len() {
             1 => Ok(found.remove(0)),
             0 => bail!(

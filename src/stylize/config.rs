@@ -409,15 +409,18 @@ pub enum Preset {
 }
 
 impl Preset {
+    /// The preset's config (`Fast` is also the demo's stylization).
     pub fn config(self) -> Result<StylizeConfig> {
         match self {
             Preset::Paper => Ok(StylizeConfig::default()),
-            Preset::Fast => {
-                StylizeConfig::from_toml_str(include_str!("../../configs/demo_stylize.toml"), "the fast preset")
-            }
-            Preset::Authors => {
-                StylizeConfig::from_toml_str(include_str!("../../configs/stylize_authors.toml"), "the authors preset")
-            }
+            Preset::Fast => StylizeConfig::from_toml_str(
+                include_str!("../../configs/demo_stylize.toml"),
+                "configs/demo_stylize.toml",
+            ),
+            Preset::Authors => StylizeConfig::from_toml_str(
+                include_str!("../../configs/stylize_authors.toml"),
+                "configs/stylize_authors.toml",
+            ),
         }
     }
 }

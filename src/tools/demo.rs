@@ -17,7 +17,7 @@ use crate::photo::run::{TrainMetrics, run_training};
 use crate::reference::case::CASE_TOML;
 use crate::scene::camera::Camera;
 use crate::scene::data::{self, Dataset, DatasetKind, procedural};
-use crate::stylize::config::StylizeConfig;
+use crate::stylize::config::{Preset, StylizeConfig};
 use crate::stylize::run::run_stylize;
 use crate::stylize::{Method, StylizeJob, StylizeReport};
 use crate::util::backend::BackendKind;
@@ -36,7 +36,7 @@ pub fn demo_config() -> Result<TrainConfig> {
 /// The demo's stylization config (configs/demo_stylize.toml, compiled in):
 /// the defaults with a shorter schedule.
 pub fn demo_stylize_config() -> Result<StylizeConfig> {
-    StylizeConfig::from_toml_str(include_str!("../../configs/demo_stylize.toml"), "configs/demo_stylize.toml")
+    Preset::Fast.config()
 }
 
 /// What the demo runs (defaults: the full demo).

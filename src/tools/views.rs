@@ -77,7 +77,7 @@ fn photo_tiles(views: &[View], kind: &str, thumb: usize) -> Vec<Tile> {
         .map(|(i, v)| {
             let (w, h) = (v.camera.intrinsics.width as usize, v.camera.intrinsics.height as usize);
             let (tw, th) = thumb_size(w, h, thumb);
-            Tile { label: format!("{kind}:{i}"), image: Image::new(w, h, v.rgb.clone()).resized(tw, th) }
+            Tile { label: format!("{kind}:{i}"), image: v.camera.image_of(v.rgb.clone()).resized(tw, th) }
         })
         .collect()
 }
