@@ -22,6 +22,7 @@ use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::{Method, StylizeJob};
 use refnpr::tools::info::SystemInfo;
 use refnpr::tools::{bench, capture, demo, fuzz, paint};
+use refnpr::util::costs::Ledger;
 use refnpr::util::{config, files, image, profile};
 use refnpr::{BackendKind, Console, Progress};
 
@@ -586,7 +587,7 @@ fn main() {
 fn run() -> Result<()> {
     let matches = Cli::command().get_matches();
     let cli = Cli::from_arg_matches(&matches)?;
-    let progress = Console::verbose(cli.verbose);
+    let progress = Console::verbose(cli.verbose).with_costs(Ledger::default_location());
     match cli.command {
         Command::Demo { out, backend, steps, epochs } => {
             run_demo(&out, backend_or_env(backend, &progress)?, steps, epochs, &progress)
@@ -1217,13 +1218,11 @@ fn run_train(
         size.height
     ));
     let m = run_training(&dataset, cfg, out, backend, resume, progress)?;
+    println!("test PSNR {:.2} dB, SSIM {:.4}, {} steps in {:.1} s", m.test_psnr, m.test_ssim, m.steps, m.train_seconds);
+    let o = out.display();
+    println!("wrote {o}/checkpoint.bin, {o}/metrics.json, {o}/test/ (the test views' renders)");
     println!(
-        "test PSNR {:.2} dB, SSIM {:.4}, {} steps in {:.1} s; wrote {}",
-        m.test_psnr,
-        m.test_ssim,
-        m.steps,
-        m.train_seconds,
-        out.join("metrics.json").display()
+        "next: refnpr views --run {o} (pick a reference view), refnpr reference --run {o} --view train:0 --out CASE"
     );
     Ok(())
 }
@@ -1337,11 +1336,38 @@ mod tests {
             assert_eq!(format!("{:?}", run_of(&a)), format!("{:?}", run_of(&b)), "{new} vs {old}");
         }
         let Ok(Command::Stylize { epochs, register, .. }) =
-            parse("refnpr stylize --photo r --reference c --out o --epochs 3 --erode 2")
+            parse("refnpr stylize --photo r --reference c --out o --epochs 3 --erode 2 --no-footprint-cap")
         else {
             panic!("stylize with the old flag names did not parse")
         };
-        assert_eq!((epochs, register.erode_reference), (Some(3), 2));
+        assert_eq!((epochs, register.erode_reference, register.cap_to_footprint), (Some(3), 2, false));
+    }
+
+    /// A flag that sets a config key is named as the key (`--no-` before a
+    /// switch that turns it off): every `[register]` key of the stylize
+    /// config, `--image-epochs`, `--steps`.
+    #[test]
+    fn flags_are_named_as_their_config_keys() {
+        let cli = Cli::command();
+        let long_of = |command: &str, id: &str| {
+            let sub = cli.find_subcommand(command).expect(command);
+            let arg = sub.get_arguments().find(|a| a.get_id() == id).unwrap_or_else(|| panic!("{command}: no {id}"));
+            arg.get_long().expect("a long flag").to_string()
+        };
+        let config: toml::Table = toml::from_str(include_str!("../../configs/stylize.toml")).expect("stylize.toml");
+        let register = config["register"].as_table().expect("[register]");
+        assert!(register.len() >= 7, "{register:?}");
+        for command in ["stylize", "register"] {
+            for (key, value) in register {
+                let long = long_of(command, key);
+                let named = key.replace('_', "-");
+                let expected = if value.as_bool() == Some(true) { format!("no-{named}") } else { named };
+                assert_eq!(long, expected, "{command}: the flag of register.{key}");
+            }
+        }
+        assert!(config["schedule"].get("image_epochs").is_some());
+        assert_eq!(long_of("stylize", "epochs"), "image-epochs");
+        assert_eq!(long_of("train", "steps"), "steps");
     }
 
     /// ARF takes a style image alone; Ref-NPR needs its reference case.

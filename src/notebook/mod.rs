@@ -120,7 +120,7 @@ impl Progress for Cells {
             Event::PhaseDone { phase, seconds } => println!("{phase} done in {seconds:.1} s"),
             Event::Info(m) => println!("{m}"),
             Event::Warning(m) => println!("warning: {m}"),
-            Event::Detail(_) => {}
+            Event::Detail(_) | Event::JobStart(_) | Event::JobDone => {}
         }
     }
 }

@@ -14,6 +14,7 @@ use crate::photo::evaluate::evaluate;
 use crate::photo::trainer::Trainer;
 use crate::scene::data::Dataset;
 use crate::util::backend::BackendKind;
+use crate::util::costs::Work;
 use crate::util::lock::OutputLock;
 use crate::util::memory::peak_rss_mb;
 use crate::util::metrics;
@@ -74,6 +75,14 @@ pub fn run_training(
     let checkpoint = out.join(checkpoint::CHECKPOINT_FILE);
     let resume_from = (resume && checkpoint.exists()).then_some(checkpoint.as_path());
     let mut trainer = start(dataset, config, resume_from, backend, progress)?;
+    progress.event(Event::JobStart(Work {
+        job: "train".into(),
+        backend: backend.to_string(),
+        shape: dataset.shape_name().into(),
+        units: (trainer.config.optim.steps * trainer.config.optim.batch_rays) as f64,
+        pixels: dataset.train_pixels(),
+        resumed: resume_from.is_some(),
+    }));
     files::write_toml(&out.join("config.toml"), &trainer.config)?;
     let started = Instant::now();
     let (fit_transfers, loss_curve) = fit(&mut trainer, dataset, out, progress)?;
@@ -122,6 +131,7 @@ pub fn run_training(
         step_profile,
     };
     files::write_json(&out.join("metrics.json"), &metrics)?;
+    progress.event(Event::JobDone);
     Ok(metrics)
 }
 

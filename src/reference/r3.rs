@@ -54,9 +54,9 @@ pub struct RegisterParams {
     /// median distance between the 3D points of neighbouring reference
     /// pixels): finer voxels only lose matches, since most of them hold no
     /// reference point (the released code's low registration rate on small
-    /// images). `dict_res` is then an upper bound (`--no-footprint-cap`:
+    /// images). `dict_res` is then an upper bound (`--no-cap-to-footprint`:
     /// exactly `dict_res`).
-    #[arg(long = "no-footprint-cap", action = clap::ArgAction::SetFalse)]
+    #[arg(long = "no-cap-to-footprint", alias = "no-footprint-cap", action = clap::ArgAction::SetFalse)]
     pub cap_to_footprint: bool,
     /// Erode the reference's hit mask this many times (3x3) before storing:
     /// drops silhouette pixels whose depth mixes foreground and background.

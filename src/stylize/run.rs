@@ -29,6 +29,7 @@ use crate::stylize::step::{Guidance, StyleStep};
 use crate::stylize::styles::{arf_colour_transfer, is_background, read_styles, style_colour_stats};
 use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
 use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob, StylizeReport};
+use crate::util::costs::Work;
 use crate::util::diverged;
 use crate::util::files;
 use crate::util::image::Image;
@@ -74,6 +75,15 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let Inputs { ck, dataset, case, image_size } = Inputs::load(job, progress)?;
     let _lock = OutputLock::acquire(&job.out)?;
     let resumed = if job.resume { ResumeState::load(job)? } else { None };
+    let epochs = job.config.schedule.ray_epochs as f64 + job.config.schedule.image_epochs as f64;
+    progress.event(Event::JobStart(Work {
+        job: format!("stylize {}", job.method),
+        backend: job.backend.to_string(),
+        shape: dataset.shape_name().into(),
+        units: dataset.train_pixels() * epochs,
+        pixels: dataset.train_pixels(),
+        resumed: resumed.is_some(),
+    }));
     let mut phases = PhaseLog::default();
     let mut warnings = WarningLog::new(progress);
     let registration = phases.run("registration", 0, || registration(job, &ck, &dataset, &case, &mut warnings))?;
@@ -128,6 +138,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     files::write_json(&job.out.join("stylize.json"), &report)?;
     ResumeState::remove(&job.out);
     render_test_views(job, &dataset, progress)?;
+    progress.event(Event::JobDone);
     Ok(report)
 }
 

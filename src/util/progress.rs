@@ -8,6 +8,8 @@ use std::sync::Mutex;
 
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::util::costs::{self, Ledger, Work};
+
 /// The long-running parts of the pipeline.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Phase {
@@ -59,6 +61,11 @@ pub enum Event {
     Warning(String),
     /// A figure for `--verbose` output (host-device traffic per phase).
     Detail(String),
+    /// A long job (`train`, `stylize`) starts: what it will do, for an
+    /// estimate of its time and memory (`util::costs`).
+    JobStart(Work),
+    /// The job of the last `JobStart` finished.
+    JobDone,
 }
 
 /// Where events go.
@@ -91,11 +98,21 @@ pub struct Console {
     verbose: bool,
     /// The phase whose bar is shown, and the bar.
     bar: Mutex<Option<(Phase, ProgressBar)>>,
+    /// Where finished jobs' costs are kept and estimates come from.
+    costs: Option<Ledger>,
+    /// The running job and when it started.
+    job: Mutex<Option<(Work, std::time::Instant)>>,
 }
 
 impl Default for Console {
     fn default() -> Self {
-        Self { terminal: std::io::stderr().is_terminal(), verbose: false, bar: Mutex::new(None) }
+        Self {
+            terminal: std::io::stderr().is_terminal(),
+            verbose: false,
+            bar: Mutex::new(None),
+            costs: None,
+            job: Mutex::new(None),
+        }
     }
 }
 
@@ -103,6 +120,12 @@ impl Console {
     /// A console that also prints the `Event::Detail` lines.
     pub fn verbose(verbose: bool) -> Self {
         Self { verbose, ..Self::default() }
+    }
+
+    /// Prints an estimate at the start of each long job and records each
+    /// finished job's time and memory in `ledger` (the `refnpr` binary's console).
+    pub fn with_costs(self, ledger: Option<Ledger>) -> Self {
+        Self { costs: ledger, ..self }
     }
 }
 
@@ -172,6 +195,30 @@ impl Progress for Console {
             Event::Warning(text) => self.line(format!("warning: {text}")),
             Event::Detail(text) if self.verbose => self.line(text),
             Event::Detail(_) => {}
+            Event::JobStart(work) => {
+                if let Some(estimate) = self.costs.as_ref().and_then(|l| l.estimate(&work)) {
+                    self.line(estimate.to_string());
+                }
+                *self.job.lock().unwrap_or_else(|e| e.into_inner()) = Some((work, std::time::Instant::now()));
+            }
+            Event::JobDone => self.record_job(),
+        }
+    }
+}
+
+#[allow(clippy::print_stderr)] // the one sink that prints
+impl Console {
+    /// Records the finished job's cost (a resumed job did part of the work: not recorded).
+    fn record_job(&self) {
+        let job = self.job.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let (Some(ledger), Some((work, started))) = (&self.costs, job) else { return };
+        let Some(peak_mb) = crate::util::memory::peak_rss_mb() else { return };
+        if work.resumed {
+            return;
+        }
+        let record = costs::finished(work, started.elapsed().as_secs_f64(), peak_mb);
+        if let Err(e) = ledger.record(&record) {
+            eprintln!("warning: cannot record this job's cost in {}: {e}", ledger.path().display());
         }
     }
 }

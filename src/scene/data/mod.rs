@@ -119,6 +119,16 @@ pub enum Split {
 }
 
 impl Dataset {
+    /// Pixels of all training views.
+    pub fn train_pixels(&self) -> f64 {
+        self.train.iter().map(|v| v.camera.intrinsics.width as f64 * v.camera.intrinsics.height as f64).sum()
+    }
+
+    /// `forward-facing` (rendered in NDC) or `around`.
+    pub fn shape_name(&self) -> &'static str {
+        if self.ndc.is_some() { "forward-facing" } else { "around" }
+    }
+
     /// The ray (NDC-warped for forward-facing scenes) and colour of every pixel of `views`.
     pub fn pixel_rays(&self, views: &[View]) -> (Vec<Ray>, Vec<[f32; 3]>) {
         let mut rays = Vec::new();
