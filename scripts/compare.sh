@@ -3,7 +3,8 @@
 #   scripts/compare.sh procedural [OUT]   the demo scene, scored against its stylized twin
 #   scripts/compare.sh lego [OUT]         ../shared/data/nerf_synthetic/lego
 #   scripts/compare.sh fern [OUT]         ../shared/data/nerf_llff_data/fern
-# Rows: Ref-NPR, ARF, and Ref-NPR without L_ref / with reference rays only /
+# Rows: Ref-NPR, ARF, Ref-NPR with the authors' settings (`--preset
+# authors`), and Ref-NPR without L_ref / with reference rays only /
 # without L_feat / without L_color / without the smooth update. Reference:
 # training view 0 (procedural: the stylized twin's view, an exact repaint;
 # real scenes: `refnpr paint` over the content render). Existing runs in OUT
@@ -51,7 +52,7 @@ if [ ! -f "$out/case/style.png" ]; then
   fi
 fi
 
-all_rows=(refnpr arf no_reference reference_rays_only no_feature no_colour no_smooth)
+all_rows=(refnpr arf authors no_reference reference_rays_only no_feature no_colour no_smooth)
 read -r -a rows <<< "${ROWS:-${all_rows[*]}}"
 for row in "${rows[@]}"; do
   run="$out/$row"
@@ -59,6 +60,7 @@ for row in "${rows[@]}"; do
     case "$row" in
       refnpr) extra=() ;;
       arf) extra=(--method arf) ;;
+      authors) extra=(--preset authors) ;;
       *) extra=(--config "configs/ablations/$row.toml") ;;
     esac
     # A row killed midway continues from its resume.bin.
@@ -72,15 +74,17 @@ done
 python3 - "$out" "${all_rows[@]}" <<'EOF'
 import json, os, sys
 out, rows = sys.argv[1], [r for r in sys.argv[2:] if os.path.exists(f"{sys.argv[1]}/{r}/eval.json")]
-names = {"refnpr": "Ref-NPR", "arf": "ARF", "no_reference": "Ref-NPR w/o L_ref", "reference_rays_only": "Ref-NPR, reference rays only",
+names = {"refnpr": "Ref-NPR", "arf": "ARF", "authors": "Ref-NPR, the authors' settings", "no_reference": "Ref-NPR w/o L_ref", "reference_rays_only": "Ref-NPR, reference rays only",
          "no_feature": "Ref-NPR w/o L_feat", "no_colour": "Ref-NPR w/o L_color", "no_smooth": "Ref-NPR w/o smooth update"}
 fmt = lambda v, d=2: "-" if v is None else f"{v:.{d}f}"
-lines = ["| method | gt_psnr | gt_psnr_occluded | ref_lpips | stability (1 / 7 frames) | time |", "| --- | --- | --- | --- | --- | --- |"]
+lines = ["| method | gt_psnr | seen | unseen | near | far | ref_lpips | speckle (path) | stability (1 / 7 frames) | time |",
+         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
 for r in rows:
     e = json.load(open(f"{out}/{r}/eval.json"))
     s = json.load(open(f"{out}/{r}/stylize.json"))
     st = " / ".join(fmt(x["rmse"], 4) for x in e["stability"])
-    lines.append(f"| {names[r]} | {fmt(e['gt_psnr'])} | {fmt(e['gt_psnr_occluded'])} | {fmt(e['ref_lpips'], 4)} | {st} | {s['total_seconds'] / 60:.1f} min |")
+    psnrs = " | ".join(fmt(e.get(k)) for k in ["gt_psnr", "gt_psnr_seen", "gt_psnr_occluded", "gt_psnr_near", "gt_psnr_far"])
+    lines.append(f"| {names[r]} | {psnrs} | {fmt(e['ref_lpips'], 4)} | {100 * e['speckle']:.2f} % | {st} | {s['total_seconds'] / 60:.1f} min |")
 table = "\n".join(lines) + "\n"
 open(f"{out}/table.md", "w").write(table)
 print(table)

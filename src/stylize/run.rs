@@ -77,7 +77,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let resumed = if job.resume { ResumeState::load(job)? } else { None };
     let epochs = job.config.schedule.ray_epochs as f64 + job.config.schedule.image_epochs as f64;
     progress.event(Event::JobStart(Work {
-        job: format!("stylize {}", job.method),
+        job: job_name(job.method),
         backend: job.backend.to_string(),
         shape: dataset.shape_name().into(),
         units: dataset.train_pixels() * epochs,
@@ -709,4 +709,32 @@ fn feature_cache_bytes(method: Method, views: usize, width: usize, height: usize
         })
         .sum();
     (per_view * views) as u64
+}
+
+/// The name a stylization carries in the cost ledger (`util::costs`).
+fn job_name(method: Method) -> String {
+    format!("stylize {method}")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::util::costs::Ledger;
+
+    /// Both methods find the reference machine's record before this machine has one.
+    #[test]
+    fn both_methods_are_estimated_before_their_first_run() {
+        let ledger = Ledger::at(crate::test_support::temp_dir("stylize-costs").join("costs.jsonl"));
+        for method in [Method::RefNpr, Method::Arf] {
+            let work = Work {
+                job: job_name(method),
+                backend: "flex".into(),
+                shape: "around".into(),
+                units: 1e6,
+                pixels: 1e5,
+                resumed: false,
+            };
+            assert!(ledger.estimate(&work).is_some(), "no estimate for {}", work.job);
+        }
+    }
 }

@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 /// What a long job is about to do.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Work {
-    /// `train`, `stylize ref-npr` or `stylize arf`.
+    /// `train`, `stylize refnpr` or `stylize arf` (the method as `--method` names it).
     pub job: String,
     /// The backend's name (`flex`, `ndarray`, `wgpu`).
     pub backend: String,
@@ -121,9 +121,9 @@ fn reference_records() -> Vec<CostRecord> {
     vec![
         record("train", "around", 3600.0 * 4096.0, LEGO_PIXELS, 147.0, 1350.0),
         record("train", "forward-facing", 3000.0 * 4096.0, FERN_PIXELS, 657.0, 3400.0),
-        record("stylize ref-npr", "around", LEGO_PIXELS * STYLIZE_EPOCHS, LEGO_PIXELS, 739.0, 2840.0),
+        record("stylize refnpr", "around", LEGO_PIXELS * STYLIZE_EPOCHS, LEGO_PIXELS, 739.0, 2840.0),
         record("stylize arf", "around", LEGO_PIXELS * STYLIZE_EPOCHS, LEGO_PIXELS, 436.0, 2050.0),
-        record("stylize ref-npr", "forward-facing", FERN_PIXELS * STYLIZE_EPOCHS, FERN_PIXELS, 1407.0, 5710.0),
+        record("stylize refnpr", "forward-facing", FERN_PIXELS * STYLIZE_EPOCHS, FERN_PIXELS, 1407.0, 5710.0),
     ]
 }
 
@@ -133,7 +133,7 @@ fn reference_records() -> Vec<CostRecord> {
 pub const BASE_MB: f64 = 250.0;
 
 /// The records a ledger keeps (older ones are dropped when it grows past).
-const KEEP: usize = 200;
+pub const KEEP: usize = 200;
 
 /// The cost records of this machine, one JSON line each.
 #[derive(Debug, Clone)]
