@@ -11,6 +11,10 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 # wgpu (winit) warns when this is unset on headless machines.
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
+# The tests' runs go to a cost ledger of their own, not the user's
+# (~/.cache/refnpr/costs.jsonl), whose estimates they would skew.
+REFNPR_COSTS="$(mktemp -d)/costs.jsonl"
+export REFNPR_COSTS
 
 echo "== formatting"
 cargo fmt --check

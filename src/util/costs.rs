@@ -201,17 +201,36 @@ impl Ledger {
             from: from.clone(),
             basis,
         };
-        if let Some(r) = nearest(&self.records(), work) {
-            return Some(scaled(&r, Basis::Ledger));
+        // This machine's pace wins, unless its nearest record is a job of
+        // another size and the reference machine has one of this size:
+        // costs are not linear over an order of magnitude (a small scene
+        // never reaches the large grid), so a 96-pixel demo says less of
+        // lego than lego's own row does.
+        match (nearest(&self.records(), work), nearest(&reference_records(), work)) {
+            (Some(here), Some(reference)) if distance(&reference, work) + SIZE_SLACK < distance(&here, work) => {
+                Some(scaled(&reference, Basis::Reference))
+            }
+            (Some(here), _) => Some(scaled(&here, Basis::Ledger)),
+            (None, reference) => reference.map(|r| scaled(&r, Basis::Reference)),
         }
-        nearest(&reference_records(), work).map(|r| scaled(&r, Basis::Reference))
     }
+}
+
+/// How much closer in size (summed log ratios of work and pixels) a
+/// reference record must be than this machine's nearest one to be used
+/// instead: a factor of 4.
+const SIZE_SLACK: f64 = std::f64::consts::LN_2 * 2.0;
+
+/// How far a record's job is from `work` in size: the summed absolute log
+/// ratios of their work units and training pixels.
+fn distance(r: &CostRecord, work: &Work) -> f64 {
+    (r.work.units / work.units).ln().abs() + (r.work.pixels / work.pixels).ln().abs()
 }
 
 /// The record of the same job, backend and shape whose work is closest
 /// (the newest among equals: a machine's pace changes).
 fn nearest(records: &[CostRecord], work: &Work) -> Option<CostRecord> {
-    let distance = |r: &CostRecord| (r.work.units / work.units).ln().abs() + (r.work.pixels / work.pixels).ln().abs();
+    let distance = |r: &CostRecord| distance(r, work);
     records
         .iter()
         .filter(|r| {
@@ -266,6 +285,12 @@ mod tests {
         assert_eq!((e.basis, e.from.seconds), (Basis::Ledger, 10.0));
         assert!((e.seconds - 20.0).abs() < 1e-9 && (e.peak_mb - 450.0).abs() < 1e-9);
         assert!(e.to_string().contains("measured on this machine: 10 s and 350 MB"), "{e}");
+        // A lego-sized job is scaled from lego's reference row, not from a
+        // record a hundred times smaller; a record near its size wins again.
+        let lego = work("train", 3600.0 * 4096.0, 4e6);
+        assert_eq!(ledger.estimate(&lego).unwrap().basis, Basis::Reference);
+        ledger.record(&finished(work("train", 3000.0 * 4096.0, 3e6), 120.0, 1200.0)).unwrap();
+        assert_eq!(ledger.estimate(&lego).unwrap().basis, Basis::Ledger);
         // A resumed job is not estimated.
         assert_eq!(ledger.estimate(&Work { resumed: true, ..work("train", 200.0, 20.0) }), None);
     }
