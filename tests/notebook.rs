@@ -164,6 +164,54 @@ fn the_notebook_stages_chain_like_the_cli() {
     assert_eq!(reg.figures().rows.len(), 1);
 }
 
+/// The whole pipeline - scene, fit, twin reference, R³, Ref-NPR for one
+/// epoch, a render, the evaluation against the stylized twin - on this
+/// backend and on a CPU one (flex; ndarray when this one is flex) with the
+/// same configs. The test command runs it on wgpu too, whose steps go
+/// through the Burn graph (cut into runs where a step's samples exceed one
+/// of the adapter's buffers) while the CPU backends take the fused
+/// plain-Rust kernels: both must land in the same place.
+#[test]
+fn the_whole_pipeline_on_this_backend_lands_where_a_cpu_backends_does() {
+    let t = TempDir::new("nb-pipeline");
+    let here = common::backend();
+    let cpu = if here == BackendKind::Flex { BackendKind::Ndarray } else { BackendKind::Flex };
+    let scene = Scene::procedural(t.path().join("scene"), 32).unwrap();
+    let truth = scene.stylized_twin().unwrap();
+    let twin = Reference::twin(&scene, 0, t.path().join("case")).unwrap();
+    let train = train_config(&common::quick_blender_config(16, 24, 20, 80, 1024), "").unwrap();
+    let style = stylize_config(
+        &Default::default(),
+        "[schedule]\nimage_epochs = 1\nray_epochs = 1.0\n[loss]\nreference_rays = 2048\nregistered_rays = 2048\n",
+    )
+    .unwrap();
+    let run = |backend: BackendKind| {
+        let out = t.path().join(backend.to_string());
+        let started = std::time::Instant::now();
+        let photo = Photo::fit(&scene, train.clone(), out.join("photo"), backend).unwrap();
+        Registered::run(&photo, &twin, &RegisterParams::default(), out.join("r3")).unwrap();
+        let stylized = Stylized::run(&photo, &twin, refnpr::Method::RefNpr, style.clone(), out.join("style")).unwrap();
+        let eval = stylized.evaluate(&twin, Some(&truth)).unwrap();
+        let image = stylized.render(&scene.camera("test:1").unwrap());
+        let psnr = photo.metrics.as_ref().unwrap().test_psnr;
+        println!(
+            "{backend}: photo {psnr:.2} dB, stylized vs truth {:.2} dB, Ref-LPIPS {:.4}, {:.0} s",
+            eval.gt_psnr.unwrap(),
+            eval.ref_lpips,
+            started.elapsed().as_secs_f64()
+        );
+        (psnr, eval, image)
+    };
+    let ((psnr, eval, image), (cpu_psnr, cpu_eval, cpu_image)) = (run(here), run(cpu));
+    assert!(cpu_psnr > 20.0 && cpu_eval.gt_psnr.unwrap() > 12.0, "the CPU's run itself: {cpu_psnr} dB");
+    assert!((psnr - cpu_psnr).abs() <= 0.5, "photo: {psnr:.2} vs {cpu_psnr:.2} dB");
+    let (gt, cpu_gt) = (eval.gt_psnr.unwrap(), cpu_eval.gt_psnr.unwrap());
+    assert!((gt - cpu_gt).abs() <= 0.5, "stylized vs truth: {gt:.2} vs {cpu_gt:.2} dB");
+    assert!((eval.ref_lpips - cpu_eval.ref_lpips).abs() <= 0.05 * cpu_eval.ref_lpips, "Ref-LPIPS");
+    let between = refnpr::util::metrics::psnr(&image.rgb, &cpu_image.rgb);
+    assert!(between > 30.0, "the two backends' stylized test:1 are {between:.1} dB apart");
+}
+
 /// A backend left out of the build is refused, naming the feature.
 #[test]
 fn every_backend_of_this_build_opens_or_names_its_feature() {

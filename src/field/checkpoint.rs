@@ -179,6 +179,32 @@ pub fn load(path: &Path, device: &Device) -> Result<Checkpoint> {
 /// dropped (empty tensors), which is all rendering and R³ need and saves
 /// a grid-sized block of memory.
 pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<Checkpoint> {
+    load_parts(path, device, optimiser_state, false)
+}
+
+/// [`load_run`] with the colour cut to its view-independent band (SH
+/// degree 0) on the host, before anything reaches the device: all a
+/// stylization reads of the photoreal field. Lego's SH at degree 2 is nine
+/// times the size, and on wgpu may not fit in one of the adapter's buffers
+/// when the DC band does. The grid then says degree 0; the metadata keeps
+/// the fit's degree.
+pub fn load_run_view_independent(
+    path: &Path,
+    data: Option<&Path>,
+    device: &Device,
+) -> Result<(Checkpoint, crate::scene::data::Dataset)> {
+    let ck = load_parts(path, device, false, true)?;
+    let dataset = load_dataset(&ck, data)?;
+    Ok((ck, dataset))
+}
+
+/// Only the first SH coefficient of each colour channel of `sh` (rows of
+/// `3 x nb` coefficients, colour-major): `RadianceGrid::truncate_sh(0)` on the host.
+fn dc_band(sh: &[f32], nb: usize) -> Vec<f32> {
+    sh.iter().step_by(nb).copied().collect()
+}
+
+fn load_parts(path: &Path, device: &Device, optimiser_state: bool, view_independent: bool) -> Result<Checkpoint> {
     let path = resolve(path);
     if !path.exists() {
         let message = format!("no checkpoint at {} (train one with `refnpr train`)", path.display());
@@ -195,10 +221,14 @@ pub fn load_with(path: &Path, device: &Device, optimiser_state: bool) -> Result<
     let npts = plausible_lattice(meta.geometry.res, n)
         .ok_or_else(|| malformed(format!("{}: a {:?} lattice for {n} rows", path.display(), meta.geometry.res)))?;
     crate::field::grid::check_fits(meta.geometry.res, n, meta.sh_degree)?;
+    let grid_degree = if view_independent { 0 } else { meta.sh_degree };
+    let device = &crate::field::grid::placement(n, grid_degree, device)
+        .with_context(|| format!("loading {}", path.display()))?;
     if p.density.len() != n || p.sh.len() != n * cols || p.coords.iter().any(|&c| c as usize >= npts) {
         return Err(malformed(format!("{}: grid arrays have inconsistent sizes", path.display())).into());
     }
-    let grid = RadianceGrid::from_rows(meta.geometry, meta.sh_degree, p.coords, p.density, p.sh, device);
+    let sh = if view_independent { dc_band(&p.sh, cols / 3) } else { p.sh };
+    let grid = RadianceGrid::from_rows(meta.geometry, grid_degree, p.coords, p.density, sh, device);
     let (opt_density, opt_sh) = if !optimiser_state {
         (Tensor::zeros([0, 1], device), Tensor::zeros([0, cols], device))
     } else {

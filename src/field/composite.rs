@@ -7,7 +7,22 @@
 use burn::tensor::{Device, Int, Tensor, activation::relu};
 
 use crate::field::march::SampleBatch;
+use crate::util::backend::max_buffer_bytes;
 use crate::util::tensor::{floats, indices, select_rows};
+
+/// The most samples one [`composite`] call may take on `device` with
+/// `columns` colour coefficients a row: its largest tensors, the 8 corner
+/// rows gathered per sample and their gradient, must each fit in one of
+/// the device's buffers (wgpu's storage-buffer limit: 128 MiB on Mesa's
+/// lavapipe, where a larger binding reads garbage instead of failing).
+/// Unbounded on the CPU backends. Callers cut larger batches into runs of
+/// rays ([`SampleBatch::ray_runs`]).
+pub fn max_samples_per_call(device: &Device, columns: usize) -> usize {
+    match max_buffer_bytes(device) {
+        Some(limit) => (limit / (8 * columns.max(1) as u64 * 4)).max(1) as usize,
+        None => usize::MAX,
+    }
+}
 
 /// A sample batch uploaded to a device, ready for `composite`.
 pub struct BatchTensors {

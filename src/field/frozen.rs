@@ -10,12 +10,12 @@
 
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, activation::relu};
 
-use crate::field::composite::interpolate_corners;
+use crate::field::composite::{interpolate_corners, max_samples_per_call};
 use crate::field::grid::{CellLattice, weights_of_fractions};
 use crate::field::march::{ColourCorners, MarchParams, Marcher, colour_weights};
 use crate::scene::camera::Ray;
 use crate::scene::sh;
-use crate::util::chunk_ranges;
+use crate::util::budget_ranges;
 use crate::util::tensor::{assign_rows, cumsum_rows, floats, indices, select_rows, to_vec};
 use rayon::prelude::*;
 
@@ -270,6 +270,14 @@ impl FrozenSamples {
     }
 
     /// Rays `start..start + len` (for chunked rendering).
+    /// `(first ray, rays)` pieces of at most `chunk` rays, each with no more
+    /// samples than one render of them may hold on `sh`'s device
+    /// (`composite::max_samples_per_call`; unbounded on the CPU backends).
+    pub fn chunks(&self, chunk: usize, sh: &Tensor<2>) -> Vec<(usize, usize)> {
+        let most = max_samples_per_call(&sh.device(), sh.dims()[1]);
+        budget_ranges(self.ray_offsets.windows(2).map(|w| (w[1] - w[0]) as usize), chunk, most)
+    }
+
     pub fn range(&self, start: usize, len: usize) -> FrozenSamples {
         let ids: Vec<usize> = (start..start + len).collect();
         self.subset(&ids)
@@ -358,14 +366,19 @@ impl DeviceSamples {
         }
     }
 
-    /// [`gather`](Self::gather) of `rays` in chunks of `chunk` rays:
-    /// `(first ray, rays, samples)` per chunk, gathered as it is reached.
+    /// [`gather`](Self::gather) of `rays` in chunks of `chunk` rays, each
+    /// with no more samples than a render from `sh` may hold on its device
+    /// ([`FrozenSamples::chunks`]): `(first ray, rays, samples)` per chunk,
+    /// gathered as it is reached.
     pub fn gather_chunks<'a>(
         &'a self,
         rays: &'a [usize],
         chunk: usize,
+        sh: &Tensor<2>,
     ) -> impl Iterator<Item = (usize, usize, FrozenTensors)> + 'a {
-        chunk_ranges(rays.len(), chunk).map(move |(s, n)| (s, n, self.gather(&rays[s..s + n])))
+        let most = max_samples_per_call(&sh.device(), sh.dims()[1]);
+        let sizes = rays.iter().map(|&r| (self.ray_offsets[r + 1] - self.ray_offsets[r]) as usize);
+        budget_ranges(sizes, chunk, most).into_iter().map(move |(s, n)| (s, n, self.gather(&rays[s..s + n])))
     }
 
     /// The samples of `rays` (in that order; repeats allowed): the same
@@ -452,7 +465,7 @@ pub fn render_colour(sh: Tensor<2>, ft: &FrozenTensors, background: [f32; 3]) ->
 /// the gradient will be injected into).
 pub fn render_rays(sh: &Tensor<2>, samples: &FrozenSamples, background: [f32; 3], chunk: usize) -> Tensor<2> {
     let device = sh.device();
-    let chunks: Vec<Tensor<2>> = chunk_ranges(samples.num_rays, chunk)
+    let chunks: Vec<Tensor<2>> = (samples.chunks(chunk, sh).into_iter())
         .map(|(start, len)| render_colour(sh.clone(), &samples.range(start, len).upload(&device), background))
         .collect();
     if chunks.is_empty() {

@@ -11,6 +11,7 @@
 
 use crate::scene::sh;
 use crate::util::tensor::{floats, indices, to_vec};
+use crate::util::transfer::human_bytes;
 use anyhow::{Result, bail};
 use burn::tensor::{Device, Tensor};
 use glam::Vec3;
@@ -170,6 +171,37 @@ pub fn estimate_bytes(res: [usize; 3], rows: usize, sh_degree: u32) -> u64 {
     (res[0] * res[1] * res[2]) as u64 * 4 + rows as u64 * cols as u64 * 4 * 4
 }
 
+/// Where a grid of `rows` rows at `sh_degree` is kept when its steps run
+/// on `device`: on it when its SH colour tensor (`rows` x 3 x the SH basis,
+/// one tensor) fits in one of its buffers, else in host memory (a CPU
+/// backend's device). On wgpu a larger tensor cannot be bound whole, and
+/// lavapipe (128 MiB) then reads garbage instead of failing: the 32-pixel
+/// scene's loss jumped to 48 at an upsampling to 1.3 M rows at SH degree 2.
+/// A training step on a grid kept on the host still renders and
+/// differentiates on `device`, from the rows it touches (`Trainer`); views
+/// of it render on the CPU. The CPU backends have no such limit.
+pub fn placement(rows: usize, sh_degree: u32, device: &Device) -> Result<Device> {
+    let Some(limit) = crate::util::backend::max_buffer_bytes(device) else { return Ok(device.clone()) };
+    let need = rows as u64 * 3 * sh::num_basis(sh_degree) as u64 * 4;
+    if need <= limit {
+        return Ok(device.clone());
+    }
+    crate::util::backend::host_device().ok_or_else(|| {
+        anyhow::anyhow!(
+            "the field's SH colour ({rows} voxels, {}) is larger than the wgpu adapter's largest buffer ({}), \
+             and this build has no CPU backend to keep it in host memory: build with the feature `flex`, or fit a \
+             coarser grid ([grid] upsample_res) or a lower grid.sh_degree",
+            human_bytes(need),
+            human_bytes(limit)
+        )
+    })
+}
+
+/// Whether `grid` is kept in host memory while its steps run on `compute` (see [`placement`]).
+pub fn kept_on_host(grid: &RadianceGrid, compute: &Device) -> bool {
+    grid.device() != *compute
+}
+
 /// Refuses, before anything is allocated, a grid that would not fit in memory.
 pub fn check_fits(res: [usize; 3], rows: usize, sh_degree: u32) -> Result<()> {
     let need = estimate_bytes(res, rows, sh_degree);
@@ -326,6 +358,7 @@ impl RadianceGrid {
     pub fn new_dense(geometry: GridGeometry, sh_degree: u32, init_density: f32, device: &Device) -> Result<Self> {
         let n = geometry.num_points();
         check_fits(geometry.res, n, sh_degree)?;
+        let device = &placement(n, sh_degree, device)?;
         let coords: Vec<u32> = (0..n as u32).collect();
         let density = vec![init_density; n];
         let sh = vec![0.0; n * 3 * sh::num_basis(sh_degree)];
@@ -445,8 +478,9 @@ impl RadianceGrid {
 
     /// Resamples the grid onto a finer lattice over the same box
     /// (trilinear). A new point is active when the old cell around it has an
-    /// active corner. Refuses, before allocating, a grid that would not fit.
-    pub fn upsample(&mut self, new_res: [usize; 3]) -> Result<()> {
+    /// active corner. Refuses, before allocating, a grid that would not fit;
+    /// the new grid is kept where steps on `compute` keep it ([`placement`]).
+    pub fn upsample(&mut self, new_res: [usize; 3], compute: &Device) -> Result<()> {
         let old = self.geometry;
         let new = GridGeometry::new(new_res, old.bbox_min, old.bbox_max);
         let links_bytes = new.num_points() as u64 * 4;
@@ -512,7 +546,7 @@ impl RadianceGrid {
             .collect();
         let density: Vec<f32> = rows.iter().map(|r| r.0).collect();
         let sh_data: Vec<f32> = rows.into_iter().flat_map(|r| r.1).collect();
-        let device = self.device();
+        let device = placement(active.len(), self.sh_degree, compute)?;
         *self = Self::from_rows(new, self.sh_degree, active, density, sh_data, &device);
         Ok(())
     }

@@ -99,6 +99,36 @@ impl SampleBatch {
     pub fn max_samples_per_ray(&self) -> usize {
         self.ray_offsets.windows(2).map(|w| (w[1] - w[0]) as usize).max().unwrap_or(0)
     }
+
+    /// The rays cut, in order, into consecutive runs of at most
+    /// `max_samples` samples each (a ray with more samples alone in its
+    /// run): `(first ray, rays)` per run; one empty run for no rays. Sized so that every tensor a
+    /// run uploads or gathers fits in a device's largest buffer.
+    pub fn ray_runs(&self, max_samples: usize) -> Vec<(usize, usize)> {
+        let sizes = self.ray_offsets.windows(2).map(|w| (w[1] - w[0]) as usize);
+        let mut runs = crate::util::budget_ranges(sizes, usize::MAX, max_samples);
+        if runs.is_empty() {
+            runs.push((0, 0));
+        }
+        runs
+    }
+
+    /// The rays `first..first + count` as a batch of their own (a copy).
+    pub fn sub_batch(&self, first: usize, count: usize) -> SampleBatch {
+        let (lo, hi) = (self.ray_offsets[first] as usize, self.ray_offsets[first + count] as usize);
+        let nb = self.basis.len().checked_div(self.num_samples()).unwrap_or(0);
+        SampleBatch {
+            num_rays: count,
+            ray_offsets: self.ray_offsets[first..=first + count].iter().map(|o| o - lo as u32).collect(),
+            corner_rows: self.corner_rows[lo * 8..hi * 8].to_vec(),
+            corner_weights: self.corner_weights[lo * 8..hi * 8].to_vec(),
+            colour_weights: self.colour_weights[lo * 8..hi * 8].to_vec(),
+            t: self.t[lo..hi].to_vec(),
+            delta: self.delta[lo..hi].to_vec(),
+            basis: self.basis[lo * nb..hi * nb].to_vec(),
+            threshold_depth: self.threshold_depth[first..first + count].to_vec(),
+        }
+    }
 }
 
 /// One sample of a march: a position whose voxel has an active corner and
@@ -677,6 +707,46 @@ mod tests {
         assert_eq!(a.threshold_depth, b.threshold_depth);
         assert_eq!(skipping.depths(rays, params), a.threshold_depth);
         a.num_samples()
+    }
+
+    /// A batch cut into runs within a sample budget: each run within it
+    /// (unless a single ray exceeds it), and the runs' sub-batches are the
+    /// batch again, in order, field by field.
+    #[test]
+    fn runs_of_rays_cut_a_batch_within_a_sample_budget() {
+        let device = crate::util::backend::BackendKind::Flex.device();
+        let grid = crate::field::grid::sphere_grid(40, &device);
+        let batch = Marcher::new(&grid).samples(&view_rays(Vec3::new(2.2, 1.0, 0.8)), &MarchParams::default());
+        let budget = batch.num_samples() / 7;
+        assert!(budget > batch.max_samples_per_ray(), "{budget}");
+        let runs = batch.ray_runs(budget);
+        assert!(runs.len() >= 7, "{} runs", runs.len());
+        let mut again = SampleBatch { ray_offsets: vec![0], ..Default::default() };
+        for &(first, count) in &runs {
+            let run = batch.sub_batch(first, count);
+            assert!(run.num_samples() <= budget && run.num_rays == count && count > 0);
+            assert_eq!(first, again.num_rays, "runs follow each other");
+            let base = again.num_samples() as u32;
+            again.ray_offsets.extend(run.ray_offsets[1..].iter().map(|o| o + base));
+            again.num_rays += run.num_rays;
+            again.corner_rows.extend(run.corner_rows);
+            again.corner_weights.extend(run.corner_weights);
+            again.colour_weights.extend(run.colour_weights);
+            again.t.extend(run.t);
+            again.delta.extend(run.delta);
+            again.basis.extend(run.basis);
+            again.threshold_depth.extend(run.threshold_depth);
+        }
+        assert_eq!(format!("{again:?}"), format!("{batch:?}"));
+        assert_eq!(batch.ray_runs(usize::MAX), vec![(0, batch.num_rays)]);
+        let hitting = |first: usize, count: usize| {
+            (first..first + count).filter(|&r| batch.ray_offsets[r + 1] > batch.ray_offsets[r]).count()
+        };
+        assert!(
+            batch.ray_runs(1).iter().all(|&(f, c)| hitting(f, c) <= 1),
+            "a ray over the budget is a run of its own"
+        );
+        assert_eq!(SampleBatch::default().ray_runs(5), vec![(0, 0)]);
     }
 
     /// A batch marched into a kept buffer (after a larger batch, whose

@@ -4,7 +4,7 @@
 //! backends, the Burn graph of `composite` in chunks of rays on a GPU - so
 //! no caller branches on it.
 
-use crate::field::composite::{BatchTensors, composite};
+use crate::field::composite::{BatchTensors, composite, max_samples_per_call};
 use crate::field::grid::RadianceGrid;
 use crate::field::host_render;
 /// Rays rendered without autodiff, in plain buffers (defined beside the host kernel that fills it).
@@ -127,13 +127,17 @@ impl<'a> ViewRenderer<'a> {
         let device = self.grid.device();
         let (dens, sh) = (self.grid.density.clone().inner(), self.grid.sh.clone().inner());
         let mut out = RaysRender::default();
+        // A chunk whose samples would not fit in one of the device's buffers goes in runs of rays.
+        let most = max_samples_per_call(&device, sh.dims()[1]);
         for part in rays.chunks(chunk) {
             let batch = self.marcher.samples(part, &self.params);
-            let bt = BatchTensors::new(&batch, None, &device);
-            let rendered = composite(dens.clone(), sh.clone(), &bt, self.background);
-            out.rgb.extend(to_vec(rendered.rgb));
-            out.expected_depth.extend(to_vec(rendered.depth));
-            out.opacity.extend(to_vec(rendered.opacity));
+            for (first, count) in batch.ray_runs(most) {
+                let bt = BatchTensors::new(&batch.sub_batch(first, count), None, &device);
+                let rendered = composite(dens.clone(), sh.clone(), &bt, self.background);
+                out.rgb.extend(to_vec(rendered.rgb));
+                out.expected_depth.extend(to_vec(rendered.depth));
+                out.opacity.extend(to_vec(rendered.opacity));
+            }
             out.threshold_depth.extend(batch.threshold_depth);
         }
         out

@@ -13,14 +13,14 @@ use crate::photo::config::TrainConfig;
 use crate::photo::evaluate::evaluate;
 use crate::photo::trainer::Trainer;
 use crate::scene::data::Dataset;
-use crate::util::backend::BackendKind;
+use crate::util::backend::{BackendKind, max_buffer_bytes};
 use crate::util::costs::Work;
 use crate::util::lock::OutputLock;
 use crate::util::memory::peak_rss_mb;
 use crate::util::metrics;
 use crate::util::profile::{self, PartTime};
 use crate::util::progress::{Event, Phase, Progress};
-use crate::util::transfer::{self, PhaseLog, PhaseTransfers, Transfers};
+use crate::util::transfer::{self, PhaseLog, PhaseTransfers, Transfers, human_bytes};
 use crate::util::{diverged, files};
 
 /// What `refnpr train` writes to `RUN/metrics.json`.
@@ -172,6 +172,20 @@ fn start(
     }
 }
 
+/// What a run says when its grid outgrows the device's buffers and moves to host memory.
+fn host_grid_warning(trainer: &Trainer) -> String {
+    let bytes = trainer.grid.num_rows() as u64 * 3 * trainer.grid.num_basis() as u64 * 4;
+    let limit = max_buffer_bytes(&trainer.compute_device()).map(human_bytes).unwrap_or_default();
+    format!(
+        "at step {} the field ({} voxels, {} of SH colour) outgrew the wgpu adapter's largest buffer ({limit}): \
+         it is kept in host memory from here on, each step's rows travel to the adapter and back, and views \
+         render on the CPU",
+        trainer.step,
+        trainer.grid.num_rows(),
+        human_bytes(bytes)
+    )
+}
+
 /// Runs the remaining steps, checkpointing every `checkpoint_every`.
 /// `train_seconds` counts the time since the last checkpoint, so a resumed
 /// run adds only what it did itself. Returns the steps' host-device traffic
@@ -199,8 +213,12 @@ fn fit(
         if Some(trainer.step) == last_upsample.map(|s| s + 1) {
             trainer.profile.clear();
         }
+        let on_host = trainer.grid_kept_on_host();
         let m = transfer::measure(|| trainer.step_once());
         let (st, moved) = (m.value?, m.moved);
+        if !on_host && trainer.grid_kept_on_host() {
+            progress.warning(host_grid_warning(trainer));
+        }
         diverged::check_loss(st.mse, Phase::Fit, trainer.step, || match saved_at {
             Some(k) => format!("the last good checkpoint, {} (step {k}), is kept", checkpoint.display()),
             None => "no checkpoint of this run was written yet".to_string(),

@@ -21,7 +21,7 @@ use std::path::Path;
 
 use crate::field::checkpoint::{self, CheckpointMeta};
 use crate::field::composite::{self, BatchTensors};
-use crate::field::grid::{GridGeometry, RadianceGrid};
+use crate::field::grid::{GridGeometry, RadianceGrid, kept_on_host};
 use crate::field::host_fit::{self, FitBuffers};
 use crate::field::march::{BlockOccupancy, Marcher, SampleBatch};
 use crate::field::optim::{
@@ -76,8 +76,15 @@ pub struct Trainer {
     /// summed over the steps since it was last cleared.
     pub profile: StepProfile,
     /// Whether the steps run on the fused plain-Rust pass (`field::host_fit`)
-    /// or the Burn graph: `ray_kernel`, resolved once for the grid's device.
+    /// or the Burn graph: `ray_kernel`, resolved once for the run's device.
     host_kernel: bool,
+    /// The run's device, where the steps render and differentiate. The grid
+    /// is kept on it, or in host memory when it outgrows the device's
+    /// buffers (`field::grid::placement`); the step's rows then travel.
+    compute: Device,
+    /// The most samples the graph step renders in one graph: None takes
+    /// the device's (`composite::max_samples_per_call`).
+    max_samples_per_call: Option<usize>,
 }
 
 /// The host step's working copies, kept from one step to the next: on
@@ -165,24 +172,18 @@ fn step_rows(
     TvNeighbours { neighbours, num_core }
 }
 
-/// Refuses a batch whose largest tensor, the 8 corner rows of SH
-/// coefficients gathered per sample, would exceed what the device's kernels
-/// may bind (wgpu's storage-buffer limit: 128 MiB on Mesa's lavapipe): wgpu
-/// would otherwise fail inside the step and the failure surface later, far
-/// from its cause.
-fn check_buffer_limit(batch: &SampleBatch, num_basis: usize, device: &Device) -> Result<()> {
-    let Some(limit) = max_buffer_bytes(device) else { return Ok(()) };
-    let need = batch.num_samples() as u64 * 8 * 3 * num_basis as u64 * 4;
-    if need > limit {
+/// Refuses a batch with a ray whose samples alone would not fit in one of
+/// the device's buffers (the graph step cuts larger batches into runs of
+/// rays, but a ray is rendered whole): wgpu would otherwise read garbage or
+/// fail inside the step, far from the cause.
+fn check_buffer_limit(batch: &SampleBatch, columns: usize, device: &Device) -> Result<()> {
+    let (most, longest) = (composite::max_samples_per_call(device, columns), batch.max_samples_per_ray());
+    if longest > most {
         bail!(
-            "this step's {} samples need a {} tensor (8 corners x {} SH coefficients each), more than the \
-             wgpu adapter's largest buffer ({}): lower [optim] batch_rays (now {}), use a lower grid.sh_degree, \
-             or use --backend flex",
-            batch.num_samples(),
-            human_bytes(need),
-            3 * num_basis,
-            human_bytes(limit),
-            batch.num_rays
+            "a ray of this step has {longest} samples, more than the {most} whose gathered corners (8 x {columns} \
+             coefficients each) fit in one of the wgpu adapter's buffers ({}): raise [march] step, use a lower \
+             grid.sh_degree, or use --backend flex",
+            max_buffer_bytes(device).map(human_bytes).unwrap_or_default(),
         );
     }
     Ok(())
@@ -195,7 +196,7 @@ impl Trainer {
         let geo = GridGeometry::new(config.grid.initial_res, dataset.bbox_min, dataset.bbox_max);
         let grid = RadianceGrid::new_dense(geo, config.grid.sh_degree, config.grid.init_density, backend_device)?;
         let state = RmsState::zeros(&grid);
-        Ok(Self::assemble(dataset, config, grid, state, 0, 0.0))
+        Ok(Self::assemble(dataset, config, grid, state, 0, 0.0, backend_device))
     }
 
     /// Resumes from a checkpoint.
@@ -208,7 +209,7 @@ impl Trainer {
             )
         })?;
         let state = RmsState { density: ck.opt_density, sh: ck.opt_sh };
-        Ok(Self::assemble(dataset, config, ck.grid, state, ck.meta.step, ck.meta.train_seconds))
+        Ok(Self::assemble(dataset, config, ck.grid, state, ck.meta.step, ck.meta.train_seconds, backend_device))
     }
 
     fn assemble(
@@ -218,11 +219,13 @@ impl Trainer {
         state: RmsState,
         step: usize,
         secs: f64,
+        compute: &Device,
     ) -> Self {
         let (rays, colours) = dataset.pixel_rays(&dataset.train);
-        let host_kernel = config.ray_kernel.is_host(&grid.device());
+        let host_kernel = config.ray_kernel.is_host(compute);
         Self {
             host_kernel,
+            compute: compute.clone(),
             grid,
             state,
             config,
@@ -237,7 +240,26 @@ impl Trainer {
             step_buffers: StepBuffers::default(),
             batch: SampleBatch::default(),
             profile: StepProfile::default(),
+            max_samples_per_call: None,
         }
+    }
+
+    /// Whether the grid is kept in host memory, having outgrown the run
+    /// device's buffers (`field::grid::placement`).
+    pub fn grid_kept_on_host(&self) -> bool {
+        kept_on_host(&self.grid, &self.compute)
+    }
+
+    /// The run's device (where the steps render and differentiate).
+    pub fn compute_device(&self) -> Device {
+        self.compute.clone()
+    }
+
+    /// The graph step renders at most `samples` samples in one graph, as on
+    /// an adapter with small buffers (tests cut a step into runs with it).
+    pub fn with_max_samples_per_call(mut self, samples: usize) -> Self {
+        self.max_samples_per_call = Some(samples.max(1));
+        self
     }
 
     /// Learning rates at the current step.
@@ -258,7 +280,7 @@ impl Trainer {
         if let Some(i) = g.upsample_steps.iter().position(|&s| s == self.step) {
             let res = g.upsample_res[i];
             self.grid.prune(g.prune_threshold);
-            self.grid.upsample(res)?;
+            self.grid.upsample(res, &self.compute)?;
             self.state = RmsState::zeros(&self.grid);
             self.occupancy = None;
             return Ok(true);
@@ -284,14 +306,14 @@ impl Trainer {
             let occupancy = self.occupancy.get_or_insert_with(|| BlockOccupancy::of(&self.grid));
             Marcher::with_occupancy(&self.grid, occupancy).samples_into(&rays, &cfg.march, &mut batch);
         });
-        check_buffer_limit(&batch, self.grid.num_basis(), &plain)?;
+        check_buffer_limit(&batch, 3 * self.grid.num_basis(), &self.compute)?;
         let (local, rows_t) = profile.time("rows", || {
             let local = step_rows(&self.grid, &batch.corner_rows, &mut self.subset, cfg.optim.tv_fraction, &mut rng);
             (local, indices(self.subset.rows().to_vec(), &plain))
         });
         let mse_value = match self.host_kernel {
             true => self.host_step(&batch, &local, &rows_t, &target, &profile),
-            false => self.graph_step(&batch, &local, &rows_t, target, &profile),
+            false => self.graph_step(&batch, &local, &rows_t, &target, &profile),
         };
         self.profile = profile;
         self.step += 1;
@@ -319,7 +341,7 @@ impl Trainer {
         batch: &SampleBatch,
         local: &TvNeighbours,
         rows_t: &Tensor<1, Int>,
-        target: Vec<f32>,
+        target: &[f32],
         profile: &StepProfile,
     ) -> f32 {
         let (gd, gs, mse) = profile.time("gradient", || self.graph_gradients(batch, local, rows_t, target));
@@ -415,29 +437,61 @@ impl Trainer {
 
     /// The step's gradients (density `[rows, 1]`, SH `[rows, 3 nb]`) and its
     /// MSE through the Burn graph and autodiff: the renderer, the MSE and
-    /// the TV terms in one graph.
+    /// the TV terms. A batch too large for one of the device's buffers
+    /// (`composite::max_samples_per_call`) goes through in runs of rays,
+    /// each its own graph, their gradients summed: the same gradients as
+    /// one graph up to the order of the sums (test
+    /// `a_step_cut_into_runs_has_the_gradients_of_one_graph`).
     fn graph_gradients(
         &self,
         batch: &SampleBatch,
         local: &TvNeighbours,
         rows_t: &Tensor<1, Int>,
-        target: Vec<f32>,
+        target: &[f32],
     ) -> (Tensor<2>, Tensor<2>, f32) {
-        let (plain, subset) = (self.grid.device(), &self.subset);
-        let bt = BatchTensors::new(batch, Some(&|r: i32| subset.local(r)), &plain);
-        let ld = self.grid.density.clone().select(0, rows_t.clone()).autodiff().require_grad();
-        let ls = self.grid.sh.clone().select(0, rows_t.clone()).autodiff().require_grad();
-        let out = composite::composite(ld.clone(), ls.clone(), &bt, self.background);
-        let target_t = floats(target, [batch.num_rays, 3], &plain);
-        let diff = out.rgb - target_t;
-        let mse = (diff.clone() * diff).mean();
-        let loss = mse.clone() + self.tv_loss(local, &ld, &ls);
-        let grads = loss.backward();
-        // No gradient at all when no ray of the batch met a sample.
-        let zeros = |t: &Tensor<2>| Tensor::zeros(t.dims(), &plain);
-        let gd = ld.grad(&grads).unwrap_or_else(|| zeros(&ld));
-        let gs = ls.grad(&grads).unwrap_or_else(|| zeros(&ls));
-        (gd, gs, scalar(mse.inner()))
+        // The step's rows, moved to where the steps run when the grid is kept in host memory.
+        let (storage, plain, subset) = (self.grid.device(), &self.compute, &self.subset);
+        let density = self.grid.density.clone().select(0, rows_t.clone()).to_device(plain);
+        let sh = self.grid.sh.clone().select(0, rows_t.clone()).to_device(plain);
+        let most = self.max_samples_per_call.unwrap_or(composite::max_samples_per_call(plain, sh.dims()[1]));
+        let runs = batch.ray_runs(most);
+        // The batch's MSE is its squared errors' sum over 3 x rays.
+        let per_value = 1.0 / (3 * batch.num_rays.max(1)) as f32;
+        let (mut gd, mut gs, mut squared) = (None::<Tensor<2>>, None::<Tensor<2>>, 0.0f32);
+        for (i, &(first, count)) in runs.iter().enumerate() {
+            let cut;
+            let run = match runs.len() {
+                1 => batch,
+                _ => {
+                    cut = batch.sub_batch(first, count);
+                    &cut
+                }
+            };
+            let bt = BatchTensors::new(run, Some(&|r: i32| subset.local(r)), plain);
+            let ld = density.clone().autodiff().require_grad();
+            let ls = sh.clone().autodiff().require_grad();
+            let out = composite::composite(ld.clone(), ls.clone(), &bt, self.background);
+            let target_t = floats(target[3 * first..3 * (first + count)].to_vec(), [count, 3], plain);
+            let diff = out.rgb - target_t;
+            let run_squared = (diff.clone() * diff).sum();
+            let mut loss = run_squared.clone() * per_value;
+            if i == 0 {
+                loss = loss + self.tv_loss(local, &ld, &ls);
+            }
+            let grads = loss.backward();
+            // No gradient at all when no ray of the run met a sample.
+            let add = |sum: Option<Tensor<2>>, grad: Option<Tensor<2>>| match (sum, grad) {
+                (Some(s), Some(g)) => Some(s + g),
+                (s, g) => s.or(g),
+            };
+            gd = add(gd, ld.grad(&grads));
+            gs = add(gs, ls.grad(&grads));
+            squared += scalar(run_squared.inner());
+        }
+        let back = |sum: Option<Tensor<2>>, like: &Tensor<2>| {
+            sum.unwrap_or_else(|| Tensor::zeros(like.dims(), plain)).to_device(&storage)
+        };
+        (back(gd, &density), back(gs, &sh), squared * per_value)
     }
 
     /// The TV terms on the step's TV rows (zero when there are none).

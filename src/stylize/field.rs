@@ -15,7 +15,6 @@ use crate::field::optim::{Rmsprop, RowSubset, TvNorm, total_variation};
 use crate::scene::sh;
 use crate::stylize::colour_map::ColourMap;
 use crate::stylize::colour_transfer::ColourTransfer;
-use crate::util::chunk_ranges;
 use crate::util::tensor::{assign_rows, floats, indices, is_host_memory, select_rows, to_vec};
 
 /// The rows one optimiser step updates, and where each one's gradient sits
@@ -296,7 +295,7 @@ impl DeviceChunk {
     pub fn upload_all(samples: &FrozenSamples, chunk: usize, sh: &Tensor<2>) -> Vec<DeviceChunk> {
         let device = sh.device();
         let mut subset = RowSubset::default();
-        chunk_ranges(samples.num_rays, chunk)
+        (samples.chunks(chunk, sh).into_iter())
             .map(|(start, len)| Self::upload(samples, start, len, sh.dims()[0], &mut subset, &device))
             .collect()
     }
@@ -380,7 +379,7 @@ pub fn chunked_gradient(
 ) -> Tensor<2> {
     let device = sh.device();
     let mut subset = RowSubset::default();
-    chunk_ranges(samples.num_rays, chunk).fold(rows.zeros(&device), |total, (start, len)| {
+    samples.chunks(chunk, sh).into_iter().fold(rows.zeros(&device), |total, (start, len)| {
         DeviceChunk::upload(samples, start, len, sh.dims()[0], &mut subset, &device)
             .add_gradient(sh, background, rows, loss_of, total)
     })

@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{Result, bail};
+use anyhow::{Result, bail, ensure};
 use burn::tensor::Tensor;
 use rand::seq::SliceRandom;
 
@@ -56,7 +56,18 @@ impl Inputs {
     /// Reads and checks them (`preflight`) before any work.
     fn load(job: &StylizeJob, progress: &dyn Progress) -> Result<Self> {
         job.config.validate()?;
-        let (ck, dataset) = checkpoint::load_run(&job.photo, job.data.as_deref(), &job.backend.open(progress)?)?;
+        let device = job.backend.open(progress)?;
+        // The stylized field is view-independent: only the DC band is read.
+        let (ck, dataset) = checkpoint::load_run_view_independent(&job.photo, job.data.as_deref(), &device)?;
+        // The stylization's steps mix the field's tensors with VGG16's: one device.
+        ensure!(
+            ck.grid.device() == device,
+            "{}: the field's {} voxels of colour do not fit in one of the wgpu adapter's buffers ({}): stylize \
+             with --backend flex",
+            job.photo.display(),
+            ck.grid.num_rows(),
+            crate::util::backend::max_buffer_bytes(&device).map(transfer::human_bytes).unwrap_or_default()
+        );
         let case = ReferenceCase::load(&job.case)?;
         if let Some(m) = case.scene_mismatch(&dataset) {
             bail!(

@@ -403,7 +403,7 @@ impl<'a> StyleStep<'a> {
         let grad = match rays {
             RaySet::Host(samples) => chunked_gradient(sh, samples, self.background, chunk, rows, &loss_of),
             RaySet::Gathered(lists, picks) => {
-                gathered_gradient(sh, lists.gather_chunks(picks, chunk), self.background, rows, &loss_of)
+                gathered_gradient(sh, lists.gather_chunks(picks, chunk, sh), self.background, rows, &loss_of)
             }
         };
         (grad, value.into_inner().map_or(0.0, scalar))
@@ -506,7 +506,7 @@ impl<'a> StyleStep<'a> {
         let started = std::time::Instant::now();
         let gathered: Option<Vec<_>> = self.samples.view_on_device(v).map(|lists| {
             let all: Vec<usize> = (0..samples.num_rays).collect();
-            lists.gather_chunks(&all, self.cfg.render_chunk).collect()
+            lists.gather_chunks(&all, self.cfg.render_chunk, sh).collect()
         });
         let uploaded = match gathered {
             Some(_) => Vec::new(),

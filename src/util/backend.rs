@@ -231,6 +231,12 @@ pub fn max_buffer_bytes(device: &Device) -> Option<u64> {
     wgpu_adapter().ok().map(|a| a.max_buffer_bytes)
 }
 
+/// A CPU backend's device, for what is kept in host memory beside a GPU's
+/// work (`field::grid::placement`): flex, else ndarray; None in a build with neither.
+pub fn host_device() -> Option<Device> {
+    [BackendKind::Flex, BackendKind::Ndarray].into_iter().find(|b| b.is_compiled()).map(BackendKind::device)
+}
+
 /// The adapter wgpu runs on in this process (bringing the runtime up).
 pub fn wgpu_adapter() -> Result<AdapterSummary> {
     #[cfg(feature = "wgpu")]
