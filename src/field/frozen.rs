@@ -269,7 +269,6 @@ impl FrozenSamples {
         }
     }
 
-    /// Rays `start..start + len` (for chunked rendering).
     /// `(first ray, rays)` pieces of at most `chunk` rays, each with no more
     /// samples than one render of them may hold on `sh`'s device
     /// (`composite::max_samples_per_call`; unbounded on the CPU backends).
@@ -278,6 +277,7 @@ impl FrozenSamples {
         budget_ranges(self.ray_offsets.windows(2).map(|w| (w[1] - w[0]) as usize), chunk, most)
     }
 
+    /// Rays `start..start + len` (for chunked rendering).
     pub fn range(&self, start: usize, len: usize) -> FrozenSamples {
         let ids: Vec<usize> = (start..start + len).collect();
         self.subset(&ids)
@@ -465,7 +465,9 @@ pub fn render_colour(sh: Tensor<2>, ft: &FrozenTensors, background: [f32; 3]) ->
 /// the gradient will be injected into).
 pub fn render_rays(sh: &Tensor<2>, samples: &FrozenSamples, background: [f32; 3], chunk: usize) -> Tensor<2> {
     let device = sh.device();
-    let chunks: Vec<Tensor<2>> = (samples.chunks(chunk, sh).into_iter())
+    let chunks: Vec<Tensor<2>> = samples
+        .chunks(chunk, sh)
+        .into_iter()
         .map(|(start, len)| render_colour(sh.clone(), &samples.range(start, len).upload(&device), background))
         .collect();
     if chunks.is_empty() {

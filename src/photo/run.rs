@@ -180,7 +180,8 @@ fn host_grid_warning(trainer: &Trainer) -> String {
         "at step {} the field ({} voxels, {} of SH colour) outgrew the wgpu adapter's largest buffer ({limit}): \
          it is kept in host memory from here on, each step's rows travel to the adapter and back, and views \
          render on the CPU",
-        trainer.step,
+        // The step that upsampled; `step` already counts it.
+        trainer.step - 1,
         trainer.grid.num_rows(),
         human_bytes(bytes)
     )

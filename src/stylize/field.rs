@@ -295,7 +295,9 @@ impl DeviceChunk {
     pub fn upload_all(samples: &FrozenSamples, chunk: usize, sh: &Tensor<2>) -> Vec<DeviceChunk> {
         let device = sh.device();
         let mut subset = RowSubset::default();
-        (samples.chunks(chunk, sh).into_iter())
+        samples
+            .chunks(chunk, sh)
+            .into_iter()
             .map(|(start, len)| Self::upload(samples, start, len, sh.dims()[0], &mut subset, &device))
             .collect()
     }
