@@ -132,7 +132,8 @@ fn nsvf_loader_splits_by_prefix_and_normalises_the_box() {
 fn procedural_scene_is_deterministic_and_loads() {
     let a = TempDir::new("proc-a");
     let b = TempDir::new("proc-b");
-    let opts = procedural::SceneOptions { seed: 3, size: 24, num_train: 4, num_val: 1, num_test: 2 };
+    let opts =
+        procedural::SceneOptions { seed: 3, size: 24, num_train: 4, num_val: 1, num_test: 2, environment: false };
     procedural::write_scene(a.path(), &opts).unwrap();
     procedural::write_scene(b.path(), &opts).unwrap();
     for f in ["train/r_1.png", "test/r_0_depth.npy", "train/r_2_id.png", "stylized/train/r_1.png"] {

@@ -12,7 +12,7 @@ use refnpr::tools::demo::{DemoOptions, run_demo};
 fn the_demo_pipeline_stylizes_the_scene_towards_its_twin() {
     let dir = TempDir::new("demo");
     let opts = DemoOptions {
-        scene: SceneOptions { size: 48, num_train: 12, num_val: 2, num_test: 4, seed: 3 },
+        scene: SceneOptions { size: 48, num_train: 12, num_val: 2, num_test: 4, seed: 3, environment: false },
         steps: Some(300),
         epochs: Some(3),
         reference_view: 0,

@@ -24,7 +24,8 @@ fn fitted() -> &'static PathBuf {
     &RUN.get_or_init(|| {
         let t = TempDir::new("export");
         let scene = t.path().join("scene");
-        let opts = procedural::SceneOptions { seed: 3, size: 32, num_train: 24, num_val: 1, num_test: 3 };
+        let opts =
+            procedural::SceneOptions { seed: 3, size: 32, num_train: 24, num_val: 1, num_test: 3, environment: false };
         procedural::write_scene(&scene, &opts).unwrap();
         let ds = data::load(&scene, &Default::default()).unwrap();
         let run = t.path().join("run");

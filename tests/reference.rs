@@ -9,7 +9,8 @@ use refnpr::scene::data::{self, procedural};
 use std::path::Path;
 
 fn tiny_dataset(dir: &Path) -> data::Dataset {
-    let opts = procedural::SceneOptions { seed: 0, size: 32, num_train: 6, num_val: 1, num_test: 2 };
+    let opts =
+        procedural::SceneOptions { seed: 0, size: 32, num_train: 6, num_val: 1, num_test: 2, environment: false };
     procedural::write_scene(dir, &opts).unwrap();
     data::load(dir, &Default::default()).unwrap()
 }

@@ -257,7 +257,7 @@ fn no_reference_hits_gives_no_dictionary() {
 fn registration_with_trained_depth() {
     use refnpr::scene::data;
     let t = common::TempDir::new("r3");
-    let opts = SceneOptions { seed: 2, size: 96, num_train: 24, num_val: 1, num_test: 2 };
+    let opts = SceneOptions { seed: 2, size: 96, num_train: 24, num_val: 1, num_test: 2, environment: false };
     procedural::write_scene(&t.path().join("scene"), &opts).unwrap();
     let ds = data::load(&t.path().join("scene"), &Default::default()).unwrap();
     let c = common::quick_blender_config(64, 128, 200, 600, 2048);
@@ -328,7 +328,7 @@ fn register_command_writes_its_outputs_and_survives_a_camera_looking_away() {
     use refnpr::reference::registration::{RegistrationFile, run_register, write_reference_skeleton};
     use refnpr::scene::data::{self, DatasetKind};
     let t = common::TempDir::new("r3-cmd");
-    let opts = SceneOptions { seed: 3, size: 32, num_train: 8, num_val: 1, num_test: 1 };
+    let opts = SceneOptions { seed: 3, size: 32, num_train: 8, num_val: 1, num_test: 1, environment: false };
     let scene_dir = t.path().join("scene");
     procedural::write_scene(&scene_dir, &opts).unwrap();
     let ds = data::load(&scene_dir, &Default::default()).unwrap();

@@ -471,7 +471,7 @@ fn deferred_backprop_equals_direct_backprop() {
 
 fn tiny_photo_run(dir: &std::path::Path, steps: usize, num_train: usize) -> std::path::PathBuf {
     let scene = dir.join("scene");
-    let opts = procedural::SceneOptions { seed: 2, size: 64, num_train, num_val: 1, num_test: 4 };
+    let opts = procedural::SceneOptions { seed: 2, size: 64, num_train, num_val: 1, num_test: 4, environment: false };
     procedural::write_scene(&scene, &opts).unwrap();
     let ds = data::load(&scene, &Default::default()).unwrap();
     let c = common::quick_blender_config(48, 96, steps / 2, steps, 2048);

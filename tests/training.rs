@@ -12,7 +12,8 @@ use refnpr::scene::data::{self, DatasetKind, procedural};
 use refnpr::util::tensor::to_vec;
 
 fn tiny_scene(dir: &std::path::Path) -> data::Dataset {
-    let opts = procedural::SceneOptions { seed: 1, size: 32, num_train: 24, num_val: 1, num_test: 3 };
+    let opts =
+        procedural::SceneOptions { seed: 1, size: 32, num_train: 24, num_val: 1, num_test: 3, environment: false };
     procedural::write_scene(dir, &opts).unwrap();
     data::load(dir, &Default::default()).unwrap()
 }

@@ -21,7 +21,8 @@ use refnpr::view::{ViewRun, pack::FieldHeader};
 /// A tiny fitted run.
 fn fitted(t: &TempDir) -> PathBuf {
     let scene = t.path().join("scene");
-    let opts = procedural::SceneOptions { seed: 5, size: 24, num_train: 12, num_val: 1, num_test: 2 };
+    let opts =
+        procedural::SceneOptions { seed: 5, size: 24, num_train: 12, num_val: 1, num_test: 2, environment: false };
     procedural::write_scene(&scene, &opts).unwrap();
     let ds = data::load(&scene, &Default::default()).unwrap();
     let run = t.path().join("run");

@@ -12,6 +12,7 @@ use refnpr::field::checkpoint::{self, Checkpoint};
 use refnpr::field::render_path::{self, PathKind};
 use refnpr::photo::config::TrainConfig;
 use refnpr::photo::evaluate::evaluate;
+use refnpr::photo::pose_refine;
 use refnpr::photo::run::run_training;
 use refnpr::reference::case::{ReferenceCase, ViewSpec};
 use refnpr::reference::r3::RegisterParams;
@@ -79,6 +80,10 @@ enum Command {
         /// Square image size in pixels.
         #[arg(long, default_value_t = 96)]
         size: u32,
+        /// Surround the scene with a textured far environment (a 360° capture of an object in a room)
+        /// instead of an empty background.
+        #[arg(long)]
+        environment: bool,
     },
     /// A dataset from a folder of photos, through COLMAP (installed separately:
     /// `apt-get install colmap`): photos downsized, features, matching, mapping,
@@ -126,6 +131,26 @@ enum Command {
         /// The number of steps ([optim] steps).
         #[arg(long)]
         steps: Option<usize>,
+    },
+    /// Aligns each camera of a COLMAP capture around the scene to its photo with a field trained on it
+    /// (its pose, and one focal length shared by all), and writes the dataset with the refined cameras:
+    /// train again on OUT. COLMAP's poses of small or texture-poor photos are a fraction of a pixel off.
+    RefinePoses {
+        /// The photoreal run trained on the capture.
+        #[arg(long)]
+        run: PathBuf,
+        /// The dataset folder to write (images/, sparse/0/ in COLMAP's text form, test.txt).
+        #[arg(long)]
+        out: PathBuf,
+        /// The capture (default: the run's dataset).
+        #[arg(long)]
+        data: Option<PathBuf>,
+        /// Gauss-Newton iterations (each renders every view once).
+        #[arg(long, default_value_t = 6)]
+        iterations: usize,
+        /// Keep the focal length (refine the poses only).
+        #[arg(long)]
+        keep_focal: bool,
     },
     /// Renders a run (photoreal or stylized) along a camera path: OUT/rgb/, OUT/depth/, OUT/path.gif.
     Render {
@@ -635,8 +660,18 @@ fn run() -> Result<()> {
             }
             Ok(())
         }
-        Command::Scene { out, seed, size } => {
-            procedural::write_scene(&out, &procedural::SceneOptions { seed, size, ..Default::default() })?;
+        Command::RefinePoses { run, out, data, iterations, keep_focal } => {
+            let (ck, dataset) = checkpoint::load_run(&run, data.as_deref(), &BackendKind::Flex.device())?;
+            data::writable_frame(&dataset)?;
+            let settings = pose_refine::RefineSettings { iterations, focal: !keep_focal };
+            let r = pose_refine::refine_dataset(&ck.grid, &dataset, &ck.meta.render, &settings)?;
+            println!("{}", r.describe());
+            data::write_colmap(&dataset, &r.cameras, &out)?;
+            println!("wrote {} (train it: refnpr train --data {} --out RUN)", out.display(), out.display());
+            Ok(())
+        }
+        Command::Scene { out, seed, size, environment } => {
+            procedural::write_scene(&out, &procedural::SceneOptions { seed, size, environment, ..Default::default() })?;
             println!("wrote the procedural scene to {}", out.display());
             Ok(())
         }

@@ -581,7 +581,8 @@ fn npy_bytes(scratch: &Path, shape: &[usize]) -> Result<Vec<u8>> {
 fn tiny_scene(scratch: &Path) -> Result<PathBuf> {
     let dir = scratch.join("scene");
     if !dir.join("transforms_train.json").exists() {
-        let opts = procedural::SceneOptions { seed: 1, size: 8, num_train: 2, num_val: 1, num_test: 1 };
+        let opts =
+            procedural::SceneOptions { seed: 1, size: 8, num_train: 2, num_val: 1, num_test: 1, environment: false };
         procedural::write_scene(&dir, &opts)?;
     }
     Ok(dir)

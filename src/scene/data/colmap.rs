@@ -107,3 +107,65 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     let capture = Capture { kind: DatasetKind::Colmap, root: dir, source: &images_file, views, is_test, points };
     posed::assemble(capture, opts)
 }
+
+/// The frame a dataset's cameras go back to when it is written as a COLMAP
+/// folder; an error for anything but a COLMAP capture around the scene.
+pub fn writable_frame(ds: &Dataset) -> Result<super::SourceFrame> {
+    match ds.source_frame {
+        Some(frame) if ds.kind == DatasetKind::Colmap => Ok(frame),
+        _ => anyhow::bail!(
+            "{}: only a COLMAP capture around the scene can be written back with other cameras (this is a {} \
+             dataset, {})",
+            ds.root.display(),
+            ds.kind,
+            ds.shape_name()
+        ),
+    }
+}
+
+/// Writes a COLMAP dataset folder (`images/` as PNG, `sparse/0/` in the text
+/// form, `test.txt`) of `ds`'s train and test views seen by `cameras` (one
+/// per view, train then test, in `ds`'s frame): the same scene with other
+/// poses and intrinsics, e.g. refined ones. The poses go back to the source
+/// model's frame and the source's sparse points are kept, so loading the
+/// folder sets up the same box. Each view gets its own PINHOLE camera, as
+/// the views are already undistorted.
+pub fn write_colmap(ds: &Dataset, cameras: &[Camera], out: &Path) -> Result<()> {
+    let views: Vec<&View> = ds.train.iter().chain(&ds.test).collect();
+    assert_eq!(views.len(), cameras.len(), "one camera per train and test view");
+    let frame = writable_frame(ds)?;
+    let (source, _) = read_model(&ds.root)?;
+    let png_name = |name: &str| Path::new(name).with_extension("png").to_string_lossy().into_owned();
+    let mut model = Model { points: source.points, ..Model::default() };
+    for (i, (view, camera)) in views.iter().zip(cameras).enumerate() {
+        let k = camera.intrinsics;
+        let id = i as u32 + 1;
+        let params = vec![k.fx as f64, k.fy as f64, k.cx as f64, k.cy as f64];
+        let pinhole = colmap_model::CameraModel::Pinhole;
+        model
+            .cameras
+            .insert(id, colmap_model::ColmapCamera { model: pinhole, width: k.width, height: k.height, params });
+        // OpenGL camera-to-world -> OpenCV world-to-camera.
+        let flip = DMat4::from_diagonal(DVec4::new(1.0, -1.0, -1.0, 1.0));
+        let w2c = (frame.to_source(camera.c2w).as_dmat4() * flip).inverse();
+        let q = glam::DQuat::from_mat3(&glam::DMat3::from_mat4(w2c)).normalize();
+        let name = png_name(&view.name);
+        let path = out.join("images").join(&name);
+        crate::util::files::create_dir(path.parent().unwrap_or(out))?;
+        crate::util::image::save_png(&path, k.width, k.height, &view.rgb)?;
+        model.images.push(colmap_model::ColmapImage {
+            camera_id: id,
+            name,
+            qvec: [q.w, q.x, q.y, q.z],
+            tvec: w2c.w_axis.truncate().to_array(),
+            point_ids: Vec::new(),
+        });
+    }
+    model.images.sort_by(|a, b| a.name.cmp(&b.name));
+    let sparse = out.join("sparse").join("0");
+    crate::util::files::create_dir(&sparse)?;
+    colmap_model::write_text(&model, &sparse)?;
+    let test: Vec<String> = ds.test.iter().map(|v| png_name(&v.name) + "\n").collect();
+    std::fs::write(out.join("test.txt"), test.concat()).with_context(|| format!("cannot write {}", out.display()))?;
+    Ok(())
+}

@@ -271,5 +271,6 @@ pub(crate) fn forward_facing(setup: Forward, views: Vec<View>, is_test: &[bool],
         near_far: Some(setup.near_far),
         warnings: warning.into_iter().collect(),
         notes: Vec::new(),
+        source_frame: None,
     }
 }

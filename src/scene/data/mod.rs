@@ -2,6 +2,7 @@
 
 pub(crate) mod blender;
 pub(crate) mod colmap;
+pub use colmap::{writable_frame, write_colmap};
 pub mod colmap_model;
 pub(crate) mod llff;
 pub(crate) mod nsvf;
@@ -14,7 +15,7 @@ use crate::scene::camera::{Camera, Intrinsics, NdcParams, Ray, pose_is_valid};
 use crate::util::input::InputError;
 use anyhow::{Context, Result, bail};
 
-use glam::{Mat4, Vec3};
+use glam::{Mat3, Mat4, Vec3};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -108,6 +109,28 @@ pub struct Dataset {
     /// What the loader decided from the data (the capture's shape, the
     /// box, the split), for the caller to print.
     pub notes: Vec<String>,
+    /// How a capture around the scene was moved into this frame (None:
+    /// the source's own frame, or a forward-facing capture's LLFF one).
+    pub source_frame: Option<SourceFrame>,
+}
+
+/// The similarity that moved a capture's poses into a dataset's frame:
+/// positions `(rotation * p - centre) * scale`, orientations `rotation * R`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SourceFrame {
+    pub rotation: Mat3,
+    pub centre: Vec3,
+    pub scale: f32,
+}
+
+impl SourceFrame {
+    /// A camera-to-world pose of the dataset's frame in the source's frame.
+    pub fn to_source(&self, c2w: Mat4) -> Mat4 {
+        let back = self.rotation.transpose();
+        let r = back * Mat3::from_mat4(c2w);
+        let c = back * (c2w.w_axis.truncate() / self.scale + self.centre);
+        Mat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), c.extend(1.0))
+    }
 }
 
 /// Which split of a dataset.

@@ -155,5 +155,6 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         near_far: None,
         warnings: Vec::new(),
         notes: Vec::new(),
+        source_frame: None,
     })
 }

@@ -11,7 +11,7 @@
 //! training defaults (grid resolution, step, density init) are tuned for.
 
 use super::llff::{self, Forward, LLFF_HOLD};
-use super::{Dataset, DatasetKind, LoadOptions, Shape, View};
+use super::{Dataset, DatasetKind, LoadOptions, Shape, SourceFrame, View};
 use crate::scene::camera::percentile;
 use anyhow::{Result, bail};
 use glam::{Mat3, Mat4, Quat, Vec3};
@@ -24,6 +24,14 @@ pub const FORWARD_MAX_DEGREES: f32 = 45.0;
 
 /// Half the side of the box a capture around the scene is scaled to.
 const AROUND_HALF_SIDE: f32 = 1.5;
+
+/// How much larger than the sparse points' 2nd-98th percentiles the box of a
+/// capture around the scene is. Sparse points miss thin, untextured
+/// extremities, and a box that cuts the scene costs far more than a coarser
+/// voxel: lego captured through COLMAP fitted to 27.3 dB with a 10 % margin
+/// (training views fitted to 28 dB against 32 through the Blender loader),
+/// 29.7 dB with 47 %.
+const POINTS_BOX_MARGIN: f32 = 1.5;
 
 /// The widest angle (degrees) between a camera's viewing direction and the mean viewing direction.
 pub fn viewing_spread(c2ws: &[Mat4]) -> f32 {
@@ -139,9 +147,10 @@ fn focus_point(c2ws: &[Mat4]) -> Option<Vec3> {
 }
 
 /// The box (centre, half side) of a capture around the scene, in the
-/// rotated frame: the 2nd-98th percentiles of the sparse points when there
-/// are enough, else around the cameras' focus point (0.4 of the median
-/// camera distance: lego's cameras sit 4 units from a 1.5 box).
+/// rotated frame: the 2nd-98th percentiles of the sparse points with a
+/// [`POINTS_BOX_MARGIN`], when there are enough points, else around the
+/// cameras' focus point (0.4 of the median camera distance: lego's cameras
+/// sit 4 units from a 1.5 box).
 fn around_box(c2ws: &[Mat4], points: &[Vec3], source: &Path) -> Result<(Vec3, f32, String)> {
     if points.len() >= 50 {
         let mut lo = Vec3::ZERO;
@@ -151,8 +160,16 @@ fn around_box(c2ws: &[Mat4], points: &[Vec3], source: &Path) -> Result<(Vec3, f3
             lo[axis] = percentile(&mut v, 2.0);
             hi[axis] = percentile(&mut v, 98.0);
         }
-        let half = ((hi - lo) * 0.5).max_element() * 1.1;
-        return Ok(((lo + hi) * 0.5, half, format!("the 2nd-98th percentiles of {} sparse points", points.len())));
+        let half = ((hi - lo) * 0.5).max_element() * POINTS_BOX_MARGIN;
+        return Ok((
+            (lo + hi) * 0.5,
+            half,
+            format!(
+                "the 2nd-98th percentiles of {} sparse points, {:.0} % wider",
+                points.len(),
+                (POINTS_BOX_MARGIN - 1.0) * 100.0
+            ),
+        ));
     }
     let Some(centre) = focus_point(c2ws) else {
         bail!("{}: the cameras' axes are parallel; cannot find what they look at (set data.bbox)", source.display());
@@ -193,6 +210,7 @@ fn around(capture: Capture, opts: &LoadOptions) -> Result<Dataset> {
         near_far: None,
         warnings: Vec::new(),
         notes: Vec::new(),
+        source_frame: Some(SourceFrame { rotation: Mat3::from_mat4(rot), centre, scale }),
     };
     ds.notes.push(format!("box from {from}; up = the cameras' mean up vector, now +z"));
     Ok(ds)

@@ -6,6 +6,13 @@
 //!
 //! Shading is Lambertian under a fixed light, so colours do not depend on
 //! the view: the stylized renders are an exact target for stylization tests.
+//!
+//! With [`SceneOptions::environment`] the scene stands in a textured far
+//! environment (a skybox: floor tiles below the horizon, walls with windows
+//! and a sky above) instead of an empty background: the 360° capture of an
+//! object in a room, with ground truth. Its colour depends on the ray's
+//! direction only (no parallax), so a direction-indexed background model can
+//! represent it exactly up to its resolution; the stylized twin repaints it.
 
 use crate::scene::camera::{Camera, Intrinsics, look_at};
 use crate::util::image::write_png;
@@ -27,11 +34,13 @@ pub struct SceneOptions {
     pub num_train: usize,
     pub num_val: usize,
     pub num_test: usize,
+    /// A textured far environment around the scene instead of an empty (transparent) background.
+    pub environment: bool,
 }
 
 impl Default for SceneOptions {
     fn default() -> Self {
-        Self { seed: 0, size: 96, num_train: 48, num_val: 4, num_test: 8 }
+        Self { seed: 0, size: 96, num_train: 48, num_val: 4, num_test: 8, environment: false }
     }
 }
 
@@ -96,6 +105,52 @@ pub struct Scene {
     objects: Vec<Object>,
     photo: Vec<Texture>,
     stylized: Vec<Texture>,
+    environment: bool,
+}
+
+/// The colours of the far environment: floor tiles, walls, windows, sky.
+struct EnvironmentPalette {
+    floor: [Vec3; 2],
+    walls: [Vec3; 2],
+    window: Vec3,
+    horizon: Vec3,
+    zenith: Vec3,
+}
+
+const PHOTO_ENVIRONMENT: EnvironmentPalette = EnvironmentPalette {
+    floor: [Vec3::new(0.55, 0.45, 0.35), Vec3::new(0.3, 0.22, 0.16)],
+    walls: [Vec3::new(0.8, 0.78, 0.7), Vec3::new(0.6, 0.62, 0.66)],
+    window: Vec3::new(0.2, 0.3, 0.45),
+    horizon: Vec3::new(0.8, 0.88, 0.95),
+    zenith: Vec3::new(0.3, 0.5, 0.85),
+};
+
+const STYLIZED_ENVIRONMENT: EnvironmentPalette = EnvironmentPalette {
+    floor: [Vec3::new(0.15, 0.5, 0.45), Vec3::new(0.05, 0.2, 0.25)],
+    walls: [Vec3::new(0.85, 0.35, 0.55), Vec3::new(0.45, 0.2, 0.5)],
+    window: Vec3::new(1.0, 0.85, 0.3),
+    horizon: Vec3::new(1.0, 0.6, 0.3),
+    zenith: Vec3::new(0.35, 0.15, 0.45),
+};
+
+/// The far environment's colour in direction `d` (unit, z up).
+fn environment_colour(d: Vec3, palette: &EnvironmentPalette) -> Vec3 {
+    use std::f32::consts::{FRAC_PI_2, TAU};
+    let azimuth = (d.y.atan2(d.x) / TAU + 0.5).fract();
+    let elevation = d.z.clamp(-1.0, 1.0).asin();
+    if elevation < 0.0 {
+        // Tiles 15 degrees of azimuth by 10 of elevation.
+        let tile = (azimuth * 24.0).floor() as i64 + (elevation.to_degrees() / 10.0).floor() as i64;
+        return palette.floor[tile.rem_euclid(2) as usize];
+    }
+    let sector = (azimuth * 16.0).floor() as i64;
+    let wall_top = (8.0 + 4.0 * (sector * 7).rem_euclid(5) as f32).to_radians();
+    if elevation < wall_top {
+        let (u, v) = ((azimuth * 64.0).fract(), (elevation.to_degrees() / 3.0).fract());
+        let window = (0.3..0.7).contains(&u) && (0.3..0.7).contains(&v);
+        return if window { palette.window } else { palette.walls[sector.rem_euclid(2) as usize] };
+    }
+    palette.horizon.lerp(palette.zenith, (elevation / FRAC_PI_2).sqrt())
 }
 
 fn hit(shape: &Shape, o: Vec3, d: Vec3) -> Option<(f32, Vec3)> {
@@ -241,7 +296,19 @@ impl Scene {
                 pattern: Pattern::Checker(0.1),
             },
         ];
-        Self { objects, photo, stylized }
+        Self { objects, photo, stylized, environment: false }
+    }
+
+    /// The same scene standing in the textured far environment (see the module's doc).
+    pub fn with_environment(mut self, environment: bool) -> Self {
+        self.environment = environment;
+        self
+    }
+
+    /// What a ray that hits no object sees: the environment, or nothing (alpha 0).
+    fn background(&self, d: Vec3, stylized: bool) -> Option<Vec3> {
+        let palette = if stylized { &STYLIZED_ENVIRONMENT } else { &PHOTO_ENVIRONMENT };
+        self.environment.then(|| environment_colour(d, palette))
     }
 
     /// Nearest hit: (distance, object index, normal).
@@ -278,7 +345,8 @@ impl Scene {
                     let mut acc = Vec4::ZERO;
                     for (sx, sy) in [(-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25)] {
                         let r = cam.ray(x as f32 + sx, y as f32 + sy);
-                        if let Some(c) = self.shade(r.origin, r.dir, stylized) {
+                        let seen = self.shade(r.origin, r.dir, stylized).or_else(|| self.background(r.dir, stylized));
+                        if let Some(c) = seen {
                             acc += c.extend(1.0);
                         }
                     }
@@ -342,7 +410,7 @@ fn save_rgba(path: &Path, w: u32, h: u32, rgba: &[f32]) -> Result<()> {
 
 /// Writes the scene (photoreal and stylized) under `out`.
 pub fn write_scene(out: &Path, opts: &SceneOptions) -> Result<()> {
-    let scene = Scene::new(opts.seed);
+    let scene = Scene::new(opts.seed).with_environment(opts.environment);
     for (root, stylized) in [(out.to_path_buf(), false), (out.join("stylized"), true)] {
         for split in ["train", "val", "test"] {
             let dir = root.join(split);
@@ -370,4 +438,34 @@ pub fn write_scene(out: &Path, opts: &SceneOptions) -> Result<()> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_environment_fills_every_miss_and_its_stylized_twin_repaints_it() {
+        let opts = SceneOptions { size: 24, ..Default::default() };
+        let cam = cameras(&opts, "test")[0];
+        let (empty, _, ids) = Scene::new(0).render(&cam, false);
+        let around = Scene::new(0).with_environment(true);
+        let (photo, _, same_ids) = around.render(&cam, false);
+        let (stylized, _, _) = around.render(&cam, true);
+        assert_eq!(ids, same_ids, "the environment is behind every object");
+        let (mut misses, mut repainted) = (0, 0);
+        for (i, id) in ids.iter().enumerate() {
+            let px = |img: &[f32]| Vec4::from_slice(&img[i * 4..i * 4 + 4]);
+            assert_eq!(px(&photo).w, 1.0, "pixel {i} is opaque");
+            if px(&empty).w == 1.0 {
+                assert_eq!(px(&photo), px(&empty), "pixel {i}: an object's pixel keeps its colour");
+            }
+            if *id == ID_BACKGROUND && px(&empty).w == 0.0 {
+                misses += 1;
+                repainted += usize::from((px(&photo) - px(&stylized)).truncate().length() > 0.1);
+            }
+        }
+        assert!(misses > 24 * 24 / 10, "{misses} pixels see the environment");
+        assert_eq!(repainted, misses, "the stylized environment differs everywhere");
+    }
 }
