@@ -348,7 +348,8 @@ fn cameras_knocked_off_their_poses_and_focal_are_aligned_back_to_their_photos() 
         }
         sum / (cams.len() * points.len()) as f32
     };
-    let r = refine_cameras(&renderer, &knocked, &photos, &RefineSettings { iterations: 8, focal: true });
+    let r =
+        refine_cameras(&renderer, &knocked, &photos, &RefineSettings { iterations: 8, focal: true }, &refnpr::Quiet);
     let (before, after) = (off_by(&knocked), off_by(&r.cameras));
     eprintln!("{}; points off by {before:.2} -> {after:.2} px; residual by iteration {:?}", r.describe(), r.rms);
     assert!(after < before / 8.0, "points off by {before} px, then {after}");

@@ -664,7 +664,7 @@ fn run() -> Result<()> {
             let (ck, dataset) = checkpoint::load_run(&run, data.as_deref(), &BackendKind::Flex.device())?;
             data::writable_frame(&dataset)?;
             let settings = pose_refine::RefineSettings { iterations, focal: !keep_focal };
-            let r = pose_refine::refine_dataset(&ck.grid, &dataset, &ck.meta.render, &settings)?;
+            let r = pose_refine::refine_dataset(&ck.grid, &dataset, &ck.meta.render, &settings, &progress)?;
             println!("{}", r.describe());
             data::write_colmap(&dataset, &r.cameras, &out)?;
             println!("wrote {} (train it: refnpr train --data {} --out RUN)", out.display(), out.display());

@@ -182,7 +182,7 @@ pub fn estimate_bytes(res: [usize; 3], rows: usize, sh_degree: u32) -> u64 {
 /// of it render on the CPU. The CPU backends have no such limit.
 pub fn placement(rows: usize, sh_degree: u32, device: &Device) -> Result<Device> {
     let Some(limit) = crate::util::backend::max_buffer_bytes(device) else { return Ok(device.clone()) };
-    let need = rows as u64 * 3 * sh::num_basis(sh_degree) as u64 * 4;
+    let need = sh_bytes(rows, sh::num_basis(sh_degree));
     if need <= limit {
         return Ok(device.clone());
     }
@@ -195,6 +195,12 @@ pub fn placement(rows: usize, sh_degree: u32, device: &Device) -> Result<Device>
             human_bytes(limit)
         )
     })
+}
+
+/// Bytes of the SH colour tensor of `rows` voxels with `num_basis` SH
+/// functions (f32, 3 channels).
+pub fn sh_bytes(rows: usize, num_basis: usize) -> u64 {
+    rows as u64 * 3 * num_basis as u64 * 4
 }
 
 /// Whether `grid` is kept in host memory while its steps run on `compute` (see [`placement`]).

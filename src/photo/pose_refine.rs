@@ -23,6 +23,7 @@ use crate::field::grid::RadianceGrid;
 use crate::field::view::{RenderSettings, ViewRenderer};
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
+use crate::util::progress::{Event, Phase, Progress};
 
 /// Pixels rendered less opaque than this have no reliable depth and are left out.
 pub const MIN_OPACITY: f32 = 0.95;
@@ -295,14 +296,20 @@ pub fn refine_cameras(
     cameras: &[Camera],
     photos: &[&[f32]],
     settings: &RefineSettings,
+    progress: &dyn Progress,
 ) -> Refinement {
     assert_eq!(cameras.len(), photos.len(), "one photo per camera");
+    let started = std::time::Instant::now();
     let mut current = cameras.to_vec();
     let mut focal_scale = 1.0f64;
     let mut history = Vec::new();
+    let total = settings.iterations + 1;
+    progress.event(Event::Start { phase: Phase::RefinePoses, done: 0, total });
     for iteration in 0..=settings.iterations {
         let normals: Vec<Normal> = current.iter().zip(photos).map(|(c, p)| view_normal(renderer, c, p)).collect();
         history.push(rms(&normals));
+        let message = format!("colour residual {:.4}", rms(&normals));
+        progress.event(Event::Step { phase: Phase::RefinePoses, done: iteration + 1, total, message });
         if iteration == settings.iterations {
             break;
         }
@@ -314,6 +321,7 @@ pub fn refine_cameras(
             camera.intrinsics.fy *= (1.0 + s) as f32;
         }
     }
+    progress.event(Event::PhaseDone { phase: Phase::RefinePoses, seconds: started.elapsed().as_secs_f64() });
     let rotation_deg = cameras.iter().zip(&current).map(|(a, b)| turned_deg(&a.c2w, &b.c2w)).collect();
     let shift = cameras.iter().zip(&current).map(|(a, b)| (a.position() - b.position()).length()).collect();
     Refinement { cameras: current, rotation_deg, shift, focal_scale: focal_scale as f32, rms: history }
@@ -328,6 +336,7 @@ pub fn refine_dataset(
     dataset: &Dataset,
     render: &RenderSettings,
     settings: &RefineSettings,
+    progress: &dyn Progress,
 ) -> Result<Refinement> {
     if dataset.ndc.is_some() {
         bail!(
@@ -339,7 +348,7 @@ pub fn refine_dataset(
     let cameras: Vec<Camera> = views.iter().map(|v| v.camera).collect();
     let photos: Vec<&[f32]> = views.iter().map(|v| v.rgb.as_slice()).collect();
     let renderer = ViewRenderer::new(grid, None, render, dataset.background);
-    Ok(refine_cameras(&renderer, &cameras, &photos, settings))
+    Ok(refine_cameras(&renderer, &cameras, &photos, settings, progress))
 }
 
 #[cfg(test)]

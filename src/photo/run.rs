@@ -9,6 +9,7 @@ use anyhow::{Result, ensure};
 use serde::{Deserialize, Serialize};
 
 use crate::field::checkpoint;
+use crate::field::grid::sh_bytes;
 use crate::photo::config::TrainConfig;
 use crate::photo::evaluate::evaluate;
 use crate::photo::trainer::Trainer;
@@ -174,7 +175,7 @@ fn start(
 
 /// What a run says when its grid outgrows the device's buffers and moves to host memory.
 fn host_grid_warning(trainer: &Trainer) -> String {
-    let bytes = trainer.grid.num_rows() as u64 * 3 * trainer.grid.num_basis() as u64 * 4;
+    let bytes = sh_bytes(trainer.grid.num_rows(), trainer.grid.num_basis());
     let limit = max_buffer_bytes(&trainer.compute_device()).map(human_bytes).unwrap_or_default();
     format!(
         "at step {} the field ({} voxels, {} of SH colour) outgrew the wgpu adapter's largest buffer ({limit}): \

@@ -125,7 +125,7 @@ pub const SMALL_PHOTO_SIDE: u32 = 400;
 /// photos with a long side under [`SMALL_PHOTO_SIDE`] get them scaled down in
 /// proportion, and SIFT one octave finer (it already doubles the image).
 /// Lego's 125 renders at 200 px: 115 registered at 0.45° / 1.44° median /
-/// worst rotation error with COLMAP's defaults; 122 at 0.24° / 0.74° so (the
+/// worst rotation error with COLMAP's defaults; 122 at 0.23-0.24° / 0.73-0.74° so (two runs; the
 /// finer octave alone: 122 at 0.37° / 1.60°; the thresholds alone: 114 at
 /// 0.37° / 1.19°). Fern's 504 px photos keep the defaults.
 struct SizeSettings {

@@ -29,6 +29,8 @@ pub enum Phase {
     Robustness,
     /// The stages of `refnpr capture` (photos, COLMAP's features, matches, mapping, undistortion).
     Capture,
+    /// The Gauss-Newton iterations of `refnpr refine-poses`.
+    RefinePoses,
 }
 
 impl std::fmt::Display for Phase {
@@ -42,6 +44,7 @@ impl std::fmt::Display for Phase {
             Phase::ImageEpochs => "image epochs",
             Phase::Robustness => "robustness",
             Phase::Capture => "capture",
+            Phase::RefinePoses => "refine poses",
         })
     }
 }
