@@ -294,6 +294,26 @@ fn a_capture_written_back_with_its_own_cameras_loads_the_same_views_in_the_same_
     assert!(e.contains("only a COLMAP capture around the scene") && e.contains("blender"), "{e}");
 }
 
+/// Points over the procedural scene's objects (its ground disc has radius 1.25).
+fn scene_points() -> Vec<glam::Vec3> {
+    (0..75)
+        .map(|i| glam::Vec3::new((i % 5) as f32 * 0.4 - 0.8, ((i / 5) % 5) as f32 * 0.4 - 0.8, (i / 25) as f32 * 0.3))
+        .collect()
+}
+
+/// How far (pixels, mean) the scene's points land between two sets of cameras.
+fn points_off_by(cams: &[refnpr::scene::camera::Camera], truth: &[refnpr::scene::camera::Camera]) -> f32 {
+    let points = scene_points();
+    let mut sum = 0.0;
+    for (c, t) in cams.iter().zip(truth) {
+        for p in &points {
+            let ((x, y, _), (u, v, _)) = (c.project(*p).unwrap(), t.project(*p).unwrap());
+            sum += ((x - u).powi(2) + (y - v).powi(2)).sqrt();
+        }
+    }
+    sum / (cams.len() * points.len()) as f32
+}
+
 /// Six cameras turned 1.5 degrees, moved 1.5 % of the box and given a
 /// focal length 2 % long are aligned back to their photos by a field fitted
 /// to the true cameras: the scene's points land at least eight times closer
@@ -334,25 +354,41 @@ fn cameras_knocked_off_their_poses_and_focal_are_aligned_back_to_their_photos() 
             k
         })
         .collect();
-    // Points over the scene's objects (its ground disc has radius 1.25).
-    let points: Vec<Vec3> = (0..75)
-        .map(|i| Vec3::new((i % 5) as f32 * 0.4 - 0.8, ((i / 5) % 5) as f32 * 0.4 - 0.8, (i / 25) as f32 * 0.3))
-        .collect();
-    let off_by = |cams: &[Camera]| {
-        let mut sum = 0.0;
-        for (c, t) in cams.iter().zip(&truth) {
-            for p in &points {
-                let ((x, y, _), (u, v, _)) = (c.project(*p).unwrap(), t.project(*p).unwrap());
-                sum += ((x - u).powi(2) + (y - v).powi(2)).sqrt();
-            }
-        }
-        sum / (cams.len() * points.len()) as f32
-    };
     let r =
         refine_cameras(&renderer, &knocked, &photos, &RefineSettings { iterations: 8, focal: true }, &refnpr::Quiet);
-    let (before, after) = (off_by(&knocked), off_by(&r.cameras));
+    let (before, after) = (points_off_by(&knocked, &truth), points_off_by(&r.cameras, &truth));
     eprintln!("{}; points off by {before:.2} -> {after:.2} px; residual by iteration {:?}", r.describe(), r.rms);
     assert!(after < before / 8.0, "points off by {before} px, then {after}");
     assert!((r.focal_scale * 1.02 - 1.0).abs() < 0.005, "focal x{} (1 / 1.02 expected)", r.focal_scale);
     assert!(r.rms.last() < r.rms.first(), "{:?}", r.rms);
+}
+
+/// `train --refine-poses` on a capture whose poses are already exact: two
+/// fits, the cameras barely moved, and the run reads the refined capture.
+#[test]
+fn training_with_refined_poses_keeps_exact_poses_and_runs_on_the_refined_capture() {
+    use refnpr::field::checkpoint;
+    use refnpr::photo::run::{REFINED_SCENE, run_training_with_refined_poses};
+    let t = TempDir::new("refine_train");
+    let opts =
+        procedural::SceneOptions { seed: 1, size: 48, num_train: 24, num_val: 0, num_test: 2, environment: false };
+    procedural::write_scene(&t.path().join("scene"), &opts).unwrap();
+    let truth = data::load(&t.path().join("scene"), &LoadOptions::default()).unwrap();
+    let model = as_colmap(&truth, &t.path().join("colmap"));
+    colmap_model::write_binary(&model, &t.path().join("colmap/sparse/0")).unwrap();
+    let capture = data::load(&t.path().join("colmap"), &LoadOptions::default()).unwrap();
+    let out = t.path().join("run");
+    let config = common::quick_blender_config(32, 64, 200, 500, 2048);
+    let (first, refinement, second) =
+        run_training_with_refined_poses(&capture, config, &out, common::backend(), &refnpr::Quiet).unwrap();
+    eprintln!("{}; test PSNR {:.2} -> {:.2} dB", refinement.describe(), first.test_psnr, second.test_psnr);
+    let exact: Vec<_> = capture.train.iter().chain(&capture.test).map(|v| v.camera).collect();
+    let off = points_off_by(&refinement.cameras, &exact);
+    eprintln!("the scene's points moved {off:.3} px");
+    assert!(off < 0.2, "the scene's points moved {off} px");
+    assert!((refinement.focal_scale - 1.0).abs() < 0.01, "focal x{}", refinement.focal_scale);
+    assert!(second.test_psnr > first.test_psnr - 1.0, "{} then {}", first.test_psnr, second.test_psnr);
+    let (_, dataset) = checkpoint::load_run(&out, None, &common::device()).unwrap();
+    assert_eq!(dataset.root, out.join(REFINED_SCENE), "the run reads the refined capture");
+    assert_eq!(dataset.train.len() + dataset.test.len(), capture.train.len() + capture.test.len());
 }

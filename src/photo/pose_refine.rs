@@ -55,7 +55,11 @@ impl Default for RefineSettings {
 #[derive(Debug, Clone)]
 pub struct Refinement {
     pub cameras: Vec<Camera>,
-    /// Each view's total rotation change (degrees).
+    /// Each view's total rotation change (degrees). A small turn and a
+    /// sideways move shift the image alike, so much of a turn may come with
+    /// a move that undoes it in the image: exact cameras of a 48-pixel scene
+    /// turned 0.26° while its points moved 0.06 px. Damping that drift
+    /// (1 % of the equations' diagonal) also biased the shared focal length.
     pub rotation_deg: Vec<f32>,
     /// Each view's camera-centre change (scene units).
     pub shift: Vec<f32>,

@@ -12,9 +12,10 @@ use crate::field::checkpoint;
 use crate::field::grid::sh_bytes;
 use crate::photo::config::TrainConfig;
 use crate::photo::evaluate::evaluate;
+use crate::photo::pose_refine::{self, RefineSettings, Refinement};
 use crate::photo::trainer::Trainer;
-use crate::scene::data::Dataset;
-use crate::util::backend::{BackendKind, max_buffer_bytes};
+use crate::scene::data::{Dataset, write_colmap};
+use crate::util::backend::{BackendKind, host_device, max_buffer_bytes};
 use crate::util::costs::Work;
 use crate::util::lock::OutputLock;
 use crate::util::memory::peak_rss_mb;
@@ -134,6 +135,38 @@ pub fn run_training(
     files::write_json(&out.join("metrics.json"), &metrics)?;
     progress.event(Event::JobDone);
     Ok(metrics)
+}
+
+/// Where `train --refine-poses` keeps its first fit and the refined capture, inside the run folder.
+pub const FIRST_FIT: &str = "first_fit";
+pub const REFINED_SCENE: &str = "scene_refined";
+
+/// `refnpr train --refine-poses`: fits `dataset` (a COLMAP capture around
+/// the scene) in `out/first_fit`, aligns its cameras to that field
+/// (`pose_refine`), writes the capture with them to `out/scene_refined`, and
+/// fits that in `out`: the run, and every stage after it, sees the refined
+/// cameras. Returns both fits' metrics and the refinement.
+pub fn run_training_with_refined_poses(
+    dataset: &Dataset,
+    config: TrainConfig,
+    out: &Path,
+    backend: BackendKind,
+    progress: &dyn Progress,
+) -> Result<(TrainMetrics, Refinement, TrainMetrics)> {
+    crate::scene::data::writable_frame(dataset)?;
+    let first_dir = out.join(FIRST_FIT);
+    let first = run_training(dataset, config.clone(), &first_dir, backend, false, progress)?;
+    // The alignment renders views on the host: the kernel it uses is the CPU's.
+    let device = host_device().unwrap_or_else(|| backend.device());
+    let ck = checkpoint::load(&first_dir, &device)?;
+    let refinement =
+        pose_refine::refine_dataset(&ck.grid, dataset, &ck.meta.render, &RefineSettings::default(), progress)?;
+    progress.info(refinement.describe());
+    let scene = out.join(REFINED_SCENE);
+    write_colmap(dataset, &refinement.cameras, &scene)?;
+    let refined = crate::scene::data::load(&scene, &config.data)?;
+    let second = run_training(&refined, config, out, backend, false, progress)?;
+    Ok((first, refinement, second))
 }
 
 /// A fresh trainer, or the one a checkpoint holds.
