@@ -289,6 +289,8 @@ fn a_capture_written_back_with_its_own_cameras_loads_the_same_views_in_the_same_
         let worst = a.rgb.iter().zip(&b.rgb).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
         assert!(worst <= 0.5 / 255.0 + 1e-6, "{}: colours {worst} apart", a.name);
     }
+    let e = format!("{:#}", data::write_colmap(&loaded, &cameras, &t.path().join("colmap")).unwrap_err());
+    assert!(e.contains("already holds a dataset"), "the source is not overwritten: {e}");
     let blender: Vec<_> = truth.train.iter().chain(&truth.test).map(|v| v.camera).collect();
     let e = format!("{:#}", data::write_colmap(&truth, &blender, &t.path().join("no")).unwrap_err());
     assert!(e.contains("only a COLMAP capture around the scene") && e.contains("blender"), "{e}");

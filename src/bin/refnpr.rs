@@ -1225,7 +1225,7 @@ fn run_refine_poses(
     progress: &dyn Progress,
 ) -> Result<()> {
     let (ck, dataset) = checkpoint::load_run(run, data, &BackendKind::Flex.device())?;
-    data::writable_frame(&dataset)?;
+    data::check_writable(&dataset, out)?;
     let r = pose_refine::refine_dataset(&ck.grid, &dataset, &ck.meta.render, settings, progress)?;
     println!("{}", r.describe());
     data::write_colmap(&dataset, &r.cameras, out)?;

@@ -153,7 +153,8 @@ pub fn run_training_with_refined_poses(
     backend: BackendKind,
     progress: &dyn Progress,
 ) -> Result<(TrainMetrics, Refinement, TrainMetrics)> {
-    crate::scene::data::writable_frame(dataset)?;
+    let scene = out.join(REFINED_SCENE);
+    crate::scene::data::check_writable(dataset, &scene)?;
     let first_dir = out.join(FIRST_FIT);
     let first = run_training(dataset, config.clone(), &first_dir, backend, false, progress)?;
     // The alignment renders views on the host: the kernel it uses is the CPU's.
@@ -162,7 +163,6 @@ pub fn run_training_with_refined_poses(
     let refinement =
         pose_refine::refine_dataset(&ck.grid, dataset, &ck.meta.render, &RefineSettings::default(), progress)?;
     progress.info(refinement.describe());
-    let scene = out.join(REFINED_SCENE);
     write_colmap(dataset, &refinement.cameras, &scene)?;
     let refined = crate::scene::data::load(&scene, &config.data)?;
     let second = run_training(&refined, config, out, backend, false, progress)?;

@@ -108,11 +108,12 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     posed::assemble(capture, opts)
 }
 
-/// The frame a dataset's cameras go back to when it is written as a COLMAP
-/// folder; an error for anything but a COLMAP capture around the scene.
-pub fn writable_frame(ds: &Dataset) -> Result<super::SourceFrame> {
-    match ds.source_frame {
-        Some(frame) if ds.kind == DatasetKind::Colmap => Ok(frame),
+/// The frame `ds`'s cameras go back to when it is written as a COLMAP folder
+/// to `out`; an error for anything but a COLMAP capture around the scene,
+/// or for an `out` that already holds a dataset.
+pub fn check_writable(ds: &Dataset, out: &Path) -> Result<super::SourceFrame> {
+    let frame = match ds.source_frame {
+        Some(frame) if ds.kind == DatasetKind::Colmap => frame,
         _ => anyhow::bail!(
             "{}: only a COLMAP capture around the scene can be written back with other cameras (this is a {} \
              dataset, {})",
@@ -120,7 +121,14 @@ pub fn writable_frame(ds: &Dataset) -> Result<super::SourceFrame> {
             ds.kind,
             ds.shape_name()
         ),
+    };
+    if out.join("images").exists() || out.join("sparse").exists() {
+        anyhow::bail!(
+            "{} already holds a dataset (images/ or sparse/): write the refined capture to a new folder",
+            out.display()
+        );
     }
+    Ok(frame)
 }
 
 /// Writes a COLMAP dataset folder (`images/` as PNG, `sparse/0/` in the text
@@ -133,7 +141,7 @@ pub fn writable_frame(ds: &Dataset) -> Result<super::SourceFrame> {
 pub fn write_colmap(ds: &Dataset, cameras: &[Camera], out: &Path) -> Result<()> {
     let views: Vec<&View> = ds.train.iter().chain(&ds.test).collect();
     assert_eq!(views.len(), cameras.len(), "one camera per train and test view");
-    let frame = writable_frame(ds)?;
+    let frame = check_writable(ds, out)?;
     let (source, _) = read_model(&ds.root)?;
     let png_name = |name: &str| Path::new(name).with_extension("png").to_string_lossy().into_owned();
     let mut model = Model { points: source.points, ..Model::default() };

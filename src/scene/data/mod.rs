@@ -2,7 +2,7 @@
 
 pub(crate) mod blender;
 pub(crate) mod colmap;
-pub use colmap::{writable_frame, write_colmap};
+pub use colmap::{check_writable, write_colmap};
 pub mod colmap_model;
 pub(crate) mod llff;
 pub(crate) mod nsvf;
