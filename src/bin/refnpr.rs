@@ -1364,6 +1364,7 @@ mod tests {
             "scene",
             "capture",
             "train",
+            "refine-poses",
             "render",
             "views",
             "reference",
