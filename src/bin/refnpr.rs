@@ -1224,7 +1224,7 @@ fn run_refine_poses(
     settings: &pose_refine::RefineSettings,
     progress: &dyn Progress,
 ) -> Result<()> {
-    let (ck, dataset) = checkpoint::load_run(run, data, &BackendKind::Flex.device())?;
+    let (ck, dataset) = checkpoint::load_run(run, data, &pose_refine::render_device(BackendKind::Flex))?;
     data::check_writable(&dataset, out)?;
     let r = pose_refine::refine_dataset(&ck.grid, &dataset, &ck.meta.render, settings, progress)?;
     println!("{}", r.describe());

@@ -23,7 +23,9 @@ use crate::field::grid::RadianceGrid;
 use crate::field::view::{RenderSettings, ViewRenderer};
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
+use crate::util::backend::{BackendKind, host_device};
 use crate::util::progress::{Event, Phase, Progress};
+use burn::tensor::Device;
 
 /// Pixels rendered less opaque than this have no reliable depth and are left out.
 pub const MIN_OPACITY: f32 = 0.95;
@@ -157,13 +159,12 @@ fn blurred(rgb: &[f32], w: usize, h: usize) -> Vec<f32> {
     out
 }
 
-/// The normal equations of one view at its current camera.
+/// The normal equations of one view at its current camera (`photo` already [`blurred`]).
 fn view_normal(renderer: &ViewRenderer, camera: &Camera, photo: &[f32]) -> Normal {
     let k = camera.intrinsics;
     let (w, h) = (k.width as usize, k.height as usize);
     let r = renderer.view(camera);
     let render = blurred(&r.image.rgb, w, h);
-    let photo = blurred(photo, w, h);
     let (fx, fy, cx, cy) = (k.fx as f64, k.fy as f64, k.cx as f64, k.cy as f64);
     (1..h - 1)
         .into_par_iter()
@@ -201,10 +202,10 @@ fn view_normal(renderer: &ViewRenderer, camera: &Camera, photo: &[f32]) -> Norma
                     let g = |img: &[f32], dx: isize, dy: isize| {
                         img[((y as isize + dy) as usize * w + (x as isize + dx) as usize) * 3 + c] as f64
                     };
-                    let gx = 0.25 * (g(&render, 1, 0) - g(&render, -1, 0) + g(&photo, 1, 0) - g(&photo, -1, 0));
-                    let gy = 0.25 * (g(&render, 0, 1) - g(&render, 0, -1) + g(&photo, 0, 1) - g(&photo, 0, -1));
+                    let gx = 0.25 * (g(&render, 1, 0) - g(&render, -1, 0) + g(photo, 1, 0) - g(photo, -1, 0));
+                    let gy = 0.25 * (g(&render, 0, 1) - g(&render, 0, -1) + g(photo, 0, 1) - g(photo, 0, -1));
                     let j: [f64; ALL] = std::array::from_fn(|a| gx * ju[a] + gy * jv[a]);
-                    n.push(&j, g(&render, 0, 0) - g(&photo, 0, 0));
+                    n.push(&j, g(&render, 0, 0) - g(photo, 0, 0));
                 }
             }
             n
@@ -309,10 +310,17 @@ pub fn refine_cameras(
     let mut history = Vec::new();
     let total = settings.iterations + 1;
     progress.event(Event::Start { phase: Phase::RefinePoses, done: 0, total });
+    // The photos do not move: blurred once.
+    let photos: Vec<Vec<f32>> = cameras
+        .iter()
+        .zip(photos)
+        .map(|(c, p)| blurred(p, c.intrinsics.width as usize, c.intrinsics.height as usize))
+        .collect();
     for iteration in 0..=settings.iterations {
-        let normals: Vec<Normal> = current.iter().zip(photos).map(|(c, p)| view_normal(renderer, c, p)).collect();
-        history.push(rms(&normals));
-        let message = format!("colour residual {:.4}", rms(&normals));
+        let normals: Vec<Normal> = current.iter().zip(&photos).map(|(c, p)| view_normal(renderer, c, p)).collect();
+        let residual = rms(&normals);
+        history.push(residual);
+        let message = format!("colour residual {residual:.4}");
         progress.event(Event::Step { phase: Phase::RefinePoses, done: iteration + 1, total, message });
         if iteration == settings.iterations {
             break;
@@ -329,6 +337,12 @@ pub fn refine_cameras(
     let rotation_deg = cameras.iter().zip(&current).map(|(a, b)| turned_deg(&a.c2w, &b.c2w)).collect();
     let shift = cameras.iter().zip(&current).map(|(a, b)| (a.position() - b.position()).length()).collect();
     Refinement { cameras: current, rotation_deg, shift, focal_scale: focal_scale as f32, rms: history }
+}
+
+/// Where a field is loaded to be aligned against: a CPU backend's device
+/// (the alignment renders whole views on the host), else `backend`'s.
+pub fn render_device(backend: BackendKind) -> Device {
+    host_device().unwrap_or_else(|| backend.device())
 }
 
 /// Refines the cameras of `dataset`'s train and test views (in that order)

@@ -15,7 +15,7 @@ use crate::photo::evaluate::evaluate;
 use crate::photo::pose_refine::{self, RefineSettings, Refinement};
 use crate::photo::trainer::Trainer;
 use crate::scene::data::{Dataset, write_colmap};
-use crate::util::backend::{BackendKind, host_device, max_buffer_bytes};
+use crate::util::backend::{BackendKind, max_buffer_bytes};
 use crate::util::costs::Work;
 use crate::util::lock::OutputLock;
 use crate::util::memory::peak_rss_mb;
@@ -157,9 +157,7 @@ pub fn run_training_with_refined_poses(
     crate::scene::data::check_writable(dataset, &scene)?;
     let first_dir = out.join(FIRST_FIT);
     let first = run_training(dataset, config.clone(), &first_dir, backend, false, progress)?;
-    // The alignment renders views on the host: the kernel it uses is the CPU's.
-    let device = host_device().unwrap_or_else(|| backend.device());
-    let ck = checkpoint::load(&first_dir, &device)?;
+    let ck = checkpoint::load(&first_dir, &pose_refine::render_device(backend))?;
     let refinement =
         pose_refine::refine_dataset(&ck.grid, dataset, &ck.meta.render, &RefineSettings::default(), progress)?;
     progress.info(refinement.describe());

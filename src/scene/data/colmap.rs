@@ -37,14 +37,24 @@ fn read_model(dir: &Path) -> Result<(Model, PathBuf)> {
     Ok((model, images_file))
 }
 
+/// OpenCV camera axes (y down, z forward) <-> OpenGL (y up, z back): its own inverse.
+const OPENCV_TO_OPENGL: DMat4 = DMat4::from_diagonal(DVec4::new(1.0, -1.0, -1.0, 1.0));
+
 /// An image's OpenGL camera-to-world pose.
 fn c2w_of(image: &colmap_model::ColmapImage) -> Mat4 {
     let r = image.rotation().transpose();
     let c = image.centre();
-    // OpenCV camera axes (y down, z forward) -> OpenGL (y up, z back).
-    let flip = DMat4::from_diagonal(DVec4::new(1.0, -1.0, -1.0, 1.0));
-    let m = DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), c.extend(1.0)) * flip;
+    let m = DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), c.extend(1.0))
+        * OPENCV_TO_OPENGL;
     m.as_mat4()
+}
+
+/// The inverse of [`c2w_of`]: an OpenGL camera-to-world pose as COLMAP's
+/// world-to-camera quaternion (w, x, y, z) and translation.
+fn qvec_tvec_of(c2w: Mat4) -> ([f64; 4], [f64; 3]) {
+    let w2c = (c2w.as_dmat4() * OPENCV_TO_OPENGL).inverse();
+    let q = glam::DQuat::from_mat3(&glam::DMat3::from_mat4(w2c)).normalize();
+    ([q.w, q.x, q.y, q.z], w2c.w_axis.truncate().to_array())
 }
 
 /// The cameras' poses alone (no image decoded), in the model's frame.
@@ -153,21 +163,12 @@ pub fn write_colmap(ds: &Dataset, cameras: &[Camera], out: &Path) -> Result<()> 
         model
             .cameras
             .insert(id, colmap_model::ColmapCamera { model: pinhole, width: k.width, height: k.height, params });
-        // OpenGL camera-to-world -> OpenCV world-to-camera.
-        let flip = DMat4::from_diagonal(DVec4::new(1.0, -1.0, -1.0, 1.0));
-        let w2c = (frame.to_source(camera.c2w).as_dmat4() * flip).inverse();
-        let q = glam::DQuat::from_mat3(&glam::DMat3::from_mat4(w2c)).normalize();
+        let (qvec, tvec) = qvec_tvec_of(frame.to_source(camera.c2w));
         let name = png_name(&view.name);
         let path = out.join("images").join(&name);
         crate::util::files::create_dir(path.parent().unwrap_or(out))?;
         crate::util::image::save_png(&path, k.width, k.height, &view.rgb)?;
-        model.images.push(colmap_model::ColmapImage {
-            camera_id: id,
-            name,
-            qvec: [q.w, q.x, q.y, q.z],
-            tvec: w2c.w_axis.truncate().to_array(),
-            point_ids: Vec::new(),
-        });
+        model.images.push(colmap_model::ColmapImage { camera_id: id, name, qvec, tvec, point_ids: Vec::new() });
     }
     model.images.sort_by(|a, b| a.name.cmp(&b.name));
     let sparse = out.join("sparse").join("0");
