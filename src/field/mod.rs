@@ -6,6 +6,7 @@
 
 pub mod checkpoint;
 pub mod composite;
+pub mod environment;
 pub mod frozen;
 pub mod grid;
 pub(crate) mod host_colour;
