@@ -10,7 +10,8 @@
 #     the two runs at the slider;
 #   - live reload: a served run's checkpoint replaced (as a fit in progress
 #     replaces it) must reach the page, which then shows the new field.
-#   bash scripts/check_view.sh REFNPR_BINARY STYLIZED_RUN PHOTO_RUN
+#   - a run with a far background (FAR_RUN), shot the same way;
+#   bash scripts/check_view.sh REFNPR_BINARY STYLIZED_RUN PHOTO_RUN [FAR_RUN]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 BIN="$(realpath "$1")"
@@ -58,6 +59,19 @@ for i in 0 1; do
   mean="$(above "$OUT/$name.json" $floor)" || { echo "error: $name run in refnpr view: $mean, below the floor $floor" >&2; exit 1; }
   echo "$name run in refnpr view: $mean against refnpr render (floor $floor)"
 done
+
+# A field with a far background (a 360° capture's): the page reads the far
+# map in each ray's direction, as refnpr's renderer does.
+if [ -n "${4:-}" ]; then
+  FAR="$(realpath "$4")"
+  "$BIN" export "$FAR" --format cameras --out "$OUT/cameras-far.json" >/dev/null
+  "$BIN" render --run "$FAR" --path test --out "$OUT/render-far" >/dev/null
+  start "$OUT/far.log" "$BIN" view "$FAR" --port 0
+  node scripts/browser/view.mjs "$url" "$OUT/cameras-far.json" "$OUT/shots-far" --run 0 --frame-size 0
+  python3 scripts/browser/compare.py "$OUT/shots-far" "$OUT/render-far/rgb" --json "$OUT/far.json" | tail -1
+  mean="$(above "$OUT/far.json" $PHOTO_FLOOR)" || { echo "error: the far-background run in refnpr view: $mean, below the floor $PHOTO_FLOOR" >&2; exit 1; }
+  echo "far-background run in refnpr view: $mean against refnpr render (floor $PHOTO_FLOOR)"
+fi
 
 "$BIN" view "$STYLIZED" --static "$OUT/site"
 start "$OUT/static.log" python3 -u -m http.server --bind 127.0.0.1 --directory "$OUT/site" 0

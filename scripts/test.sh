@@ -55,8 +55,11 @@ rm -rf demo-out
 echo "== exports in other tools: splats in a browser splat renderer, the mesh in three.js and trimesh (the example's runs)"
 BIN="target/${CARGO_BUILD_TARGET:+$CARGO_BUILD_TARGET/}debug/refnpr"
 bash scripts/check_exports.sh "$BIN" target/example-orbit/photo target/example-orbit/stylized
-echo "== refnpr view in a browser: the page against refnpr render, the static copy, a live reload (the example's runs)"
-bash scripts/check_view.sh "$BIN" target/example-orbit/stylized target/example-orbit/photo
+echo "== refnpr view in a browser: the page against refnpr render, the static copy, a live reload (the example's runs; a 360° twin's field with a far background)"
+rm -rf target/far-twin
+"$BIN" scene --out target/far-twin/scene --environment --size 48 >/dev/null
+"$BIN" train --data target/far-twin/scene --out target/far-twin/photo --steps 300 --config configs/far_background.toml >/dev/null
+bash scripts/check_view.sh "$BIN" target/example-orbit/stylized target/example-orbit/photo target/far-twin/photo
 echo "== checkpoints read without refnpr (Python's safetensors and numpy)"
 python3 scripts/check_checkpoint.py target/example-orbit/photo/checkpoint.bin target/example-orbit/stylized/checkpoint.bin
 

@@ -105,6 +105,7 @@ fn frozen_render_matches_hand_compositing() {
         fractions: vec![[0.0, 0.0, 0.0], [0.0, 0.0, 0.5]],
         weight: vec![0.4, 0.3],
         final_transmittance: vec![0.3],
+        far: vec![],
         colour_corners: march::ColourCorners::Renormalised,
     };
     let (_, colour_weights) = samples.expanded();

@@ -83,7 +83,7 @@ fn the_server_sends_the_page_and_the_runs_reloads_a_new_checkpoint_and_refuses_t
     assert_eq!(status, 200);
     let header = header_of(&field);
     let start = (4 + u32::from_le_bytes(field[..4].try_into().unwrap()) as usize).next_multiple_of(4);
-    assert_eq!(field.len(), start + header.index_bytes + header.density_bytes + header.sh_bytes);
+    assert_eq!(field.len(), start + header.index_bytes + header.density_bytes + header.sh_bytes + header.far_bytes);
     assert!(header.slots > 0);
     let (status, cameras) = get(at, "/runs/0/cameras.json");
     assert_eq!(status, 200);

@@ -4,6 +4,7 @@
 //! file, then rename): a safetensors file, which Python (`safetensors`,
 //! numpy), PyTorch and `burn-store` read without refnpr.
 
+use crate::field::environment::Environment;
 use crate::field::grid::{GridGeometry, RadianceGrid};
 use crate::field::view::{RenderSettings, ViewRender, ViewRenderer};
 use crate::scene::camera::{Camera, NdcParams};
@@ -66,6 +67,9 @@ struct Payload {
     sh: Vec<f32>,
     opt_density: Vec<f32>,
     opt_sh: Vec<f32>,
+    /// The far background, when the field has one (tensor `far`, F32
+    /// `[height, width, 3]`).
+    far: Option<Environment>,
 }
 
 /// A loaded checkpoint.
@@ -139,16 +143,20 @@ pub fn save(
         ("version".to_string(), VERSION.to_string()),
         ("meta".to_string(), meta_json),
     ]);
-    let (header, _) = safetensors::header(
-        &[
-            ("coords", DType::U32, vec![grid.coords.len()]),
-            ("density", DType::F32, shape(&grid.density)),
-            ("sh", DType::F32, shape(&grid.sh)),
-            ("opt_density", DType::F32, shape(opt_density)),
-            ("opt_sh", DType::F32, shape(opt_sh)),
-        ],
-        &metadata,
-    );
+    let mut tensors = vec![
+        ("coords", DType::U32, vec![grid.coords.len()]),
+        ("density", DType::F32, shape(&grid.density)),
+        ("sh", DType::F32, shape(&grid.sh)),
+        ("opt_density", DType::F32, shape(opt_density)),
+        ("opt_sh", DType::F32, shape(opt_sh)),
+    ];
+    if let Some(far) = &grid.far {
+        if !far.rgb.iter().all(|v| v.is_finite()) {
+            bail!("refusing to write {}: the far background holds NaN values{nothing_kept}", path.display());
+        }
+        tensors.push(("far", DType::F32, vec![far.height, far.width, 3]));
+    }
+    let (header, _) = safetensors::header(&tensors, &metadata);
     files::write_atomic(path, |w| {
         let io = |e| files::io_error(e, path);
         let mut scratch = Vec::new();
@@ -166,6 +174,9 @@ pub fn save(
                 }
                 safetensors::write_values(w, block, f32::to_le_bytes, &mut scratch).map_err(io)
             })?;
+        }
+        if let Some(far) = &grid.far {
+            safetensors::write_values(w, &far.rgb, f32::to_le_bytes, &mut scratch).map_err(io)?;
         }
         Ok(())
     })
@@ -228,7 +239,8 @@ fn load_parts(path: &Path, device: &Device, optimiser_state: bool, view_independ
         return Err(malformed(format!("{}: grid arrays have inconsistent sizes", path.display())).into());
     }
     let sh = if view_independent { dc_band(&p.sh, cols / 3) } else { p.sh };
-    let grid = RadianceGrid::from_rows(meta.geometry, grid_degree, p.coords, p.density, sh, device);
+    let mut grid = RadianceGrid::from_rows(meta.geometry, grid_degree, p.coords, p.density, sh, device);
+    grid.far = p.far;
     let (opt_density, opt_sh) = if !optimiser_state {
         (Tensor::zeros([0, 1], device), Tensor::zeros([0, cols], device))
     } else {
@@ -321,7 +333,15 @@ fn read_safetensors(r: &mut (impl Read + Seek), len: u64, optimiser_state: bool)
     let (density, sh) = (floats(r, "density")?, floats(r, "sh")?);
     let (opt_density, opt_sh) =
         if optimiser_state { (floats(r, "opt_density")?, floats(r, "opt_sh")?) } else { (Vec::new(), Vec::new()) };
-    Ok(Payload { meta_json, coords, density, sh, opt_density, opt_sh })
+    let far = match entries.get("far") {
+        None => None,
+        Some(e) if e.dtype == DType::F32 && e.shape.len() == 3 && e.shape[2] == 3 && e.shape[0] * e.shape[1] > 0 => {
+            let rgb = safetensors::read_values(r, data, e, f32::from_le_bytes)?;
+            Some(Environment { width: e.shape[1], height: e.shape[0], rgb })
+        }
+        Some(e) => return Err(invalid(format!("a far background of shape {:?} (want [height, width, 3])", e.shape))),
+    };
+    Ok(Payload { meta_json, coords, density, sh, opt_density, opt_sh, far })
 }
 
 /// The legacy file's fields, read straight into their vectors (`bin_fields`);
@@ -334,6 +354,7 @@ fn read_legacy(mut r: bin_fields::FieldReader<impl BufRead + Seek>, optimiser_st
         sh: r.read_vec(f32::from_le_bytes)?,
         opt_density: Vec::new(),
         opt_sh: Vec::new(),
+        far: None,
     };
     if optimiser_state {
         p.opt_density = r.read_vec(f32::from_le_bytes)?;

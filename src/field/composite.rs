@@ -38,6 +38,10 @@ pub struct BatchTensors {
     pub t: Tensor<1>,
     /// For each padded slot, the packed sample index, or `num_samples` for padding.
     pub pad_map: Tensor<1, Int>,
+    /// The far background per ray, `[rays, 3]` (`SampleBatch::far`), or
+    /// `None` for the constant background. A fit makes it a leaf of its
+    /// graph to learn the far map.
+    pub far: Option<Tensor<2>>,
 }
 
 impl BatchTensors {
@@ -69,6 +73,7 @@ impl BatchTensors {
             delta: floats(b.delta.clone(), [s], device),
             t: floats(b.t.clone(), [s], device),
             pad_map: indices(pad, device),
+            far: (!b.far.is_empty()).then(|| floats(b.far.concat(), [b.num_rays, 3], device)),
         }
     }
 }
@@ -102,17 +107,17 @@ fn to_padded<const D: usize>(packed: Tensor<D>, bt: &BatchTensors, tail: [usize;
 
 /// Equations 1-2 on the packed samples: density and colour by trilinear
 /// interpolation of the given rows (colour over the active corners only), then alpha compositing per ray, with
-/// `background` weighted by the remaining transmittance.
+/// the background (the batch's far colours, else `background`) weighted by
+/// the remaining transmittance.
 pub fn composite(density_rows: Tensor<2>, sh_rows: Tensor<2>, bt: &BatchTensors, background: [f32; 3]) -> Rendered {
     let device = density_rows.device();
     let (r, s, k) = (bt.num_rays, bt.num_samples, bt.k);
-    let bg = floats(background.to_vec(), [1, 3], &device);
+    let bg = match &bt.far {
+        Some(far) => far.clone(),
+        None => floats(background.to_vec(), [1, 3], &device).repeat_dim(0, r),
+    };
     if s == 0 {
-        return Rendered {
-            rgb: bg.repeat_dim(0, r),
-            depth: Tensor::zeros([r], &device),
-            opacity: Tensor::zeros([r], &device),
-        };
+        return Rendered { rgb: bg, depth: Tensor::zeros([r], &device), opacity: Tensor::zeros([r], &device) };
     }
     let nb = sh_rows.dims()[1] / 3;
     let sigma = relu(interpolate_corners(density_rows, &bt.corners, bt.corner_weights.clone()).reshape([s]));

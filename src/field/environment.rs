@@ -62,14 +62,42 @@ impl Environment {
         out
     }
 
+    /// Hands each texel `colour(dir)` reads, with its bilinear weight, to `visit`.
+    pub fn splat(&self, dir: Vec3, mut visit: impl FnMut(usize, f32)) {
+        let taps = self.taps(dir);
+        for (&i, w) in taps.index.iter().zip(taps.weight) {
+            visit(i, w);
+        }
+    }
+
     /// Adds `d(loss)/d(colour(dir)) = g` into `grad` (one value per entry of `rgb`).
     pub fn add_gradient(&self, dir: Vec3, g: [f32; 3], grad: &mut [f32]) {
         assert_eq!(grad.len(), self.rgb.len(), "one gradient per colour value");
-        let taps = self.taps(dir);
-        for (i, w) in taps.index.iter().zip(taps.weight) {
+        self.splat(dir, |i, w| {
             for (c, gc) in g.iter().enumerate() {
                 grad[i * 3 + c] += w * gc;
             }
+        });
+    }
+}
+
+/// The far map's optimiser: RMSprop over its colour values (Plenoxels'
+/// optimiser for the grid, here dense: the map holds a few thousand
+/// texels), colours kept in [0, 1].
+#[derive(Debug, Clone, Default)]
+pub struct FarOptimiser {
+    /// Running average of each value's squared gradient (empty: all zero).
+    mean_square: Vec<f32>,
+}
+
+impl FarOptimiser {
+    /// One step on `env` with `grad` (one value per entry of `env.rgb`).
+    pub fn step(&mut self, env: &mut Environment, grad: &[f32], lr: f32, beta: f32, eps: f32) {
+        assert_eq!(grad.len(), env.rgb.len(), "one gradient per colour value");
+        self.mean_square.resize(grad.len(), 0.0);
+        for ((value, avg), &g) in env.rgb.iter_mut().zip(&mut self.mean_square).zip(grad) {
+            *avg = beta * *avg + (1.0 - beta) * g * g;
+            *value = (*value - lr * g / (avg.sqrt() + eps)).clamp(0.0, 1.0);
         }
     }
 }

@@ -11,7 +11,7 @@
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, activation::relu};
 
 use crate::field::composite::{interpolate_corners, max_samples_per_call};
-use crate::field::grid::{CellLattice, weights_of_fractions};
+use crate::field::grid::{CellLattice, RadianceGrid, weights_of_fractions};
 use crate::field::march::{ColourCorners, MarchParams, Marcher, colour_weights};
 use crate::scene::camera::Ray;
 use crate::scene::sh;
@@ -58,6 +58,9 @@ pub struct FrozenSamples {
     pub weight: Vec<f32>,
     /// Transmittance left at the end of each ray (multiplies the background).
     pub final_transmittance: Vec<f32>,
+    /// The far background's colour behind each ray (`RadianceGrid::far`);
+    /// empty when the grid has none and the constant background applies.
+    pub far: Vec<[f32; 3]>,
     /// How the colour weights treat inactive corners (the march's setting).
     pub colour_corners: ColourCorners,
 }
@@ -154,6 +157,9 @@ impl FrozenSamples {
             }
         });
         self.final_transmittance.push((-optical).exp());
+        if let Some(far) = &marcher.grid().far {
+            self.far.push(far.colour(ray.view_dir));
+        }
         self.ray_offsets.push(self.weight.len() as u32);
         self.ray_cells.push(self.cell_keys.len() as u32);
         self.num_rays += 1;
@@ -170,6 +176,7 @@ impl FrozenSamples {
     /// Bytes held by the buffers (the shared links not counted: the grid holds them).
     pub fn bytes(&self) -> usize {
         (self.ray_offsets.len() + self.ray_cells.len() + self.final_transmittance.len() + self.cell_keys.len()) * 4
+            + self.far.len() * 12
             + self.num_samples() * (1 + 12 + 4)
     }
 
@@ -254,6 +261,7 @@ impl FrozenSamples {
         self.fractions.extend_from_slice(&from.fractions[lo..hi]);
         self.weight.extend_from_slice(&from.weight[lo..hi]);
         self.final_transmittance.push(from.final_transmittance[r]);
+        self.far.extend(from.far.get(r));
         self.ray_offsets.push(self.weight.len() as u32);
         self.ray_cells.push(self.cell_keys.len() as u32);
         self.num_rays += 1;
@@ -277,6 +285,16 @@ impl FrozenSamples {
         budget_ranges(self.ray_offsets.windows(2).map(|w| (w[1] - w[0]) as usize), chunk, most)
     }
 
+    /// The far colours read again from `grid`'s far map (after it changed),
+    /// `rays` being the rays the lists were marched for.
+    pub fn refresh_far(&mut self, grid: &RadianceGrid, rays: &[Ray]) {
+        assert_eq!(rays.len(), self.num_rays, "the lists' own rays");
+        self.far = match &grid.far {
+            Some(far) => rays.iter().map(|r| far.colour(r.view_dir)).collect(),
+            None => Vec::new(),
+        };
+    }
+
     /// Rays `start..start + len` (for chunked rendering).
     pub fn range(&self, start: usize, len: usize) -> FrozenSamples {
         let ids: Vec<usize> = (start..start + len).collect();
@@ -298,6 +316,7 @@ impl FrozenSamples {
         self.fractions.extend_from_slice(&b.fractions);
         self.weight.extend_from_slice(&b.weight);
         self.final_transmittance.extend_from_slice(&b.final_transmittance);
+        self.far.extend_from_slice(&b.far);
         self.num_rays += b.num_rays;
     }
 
@@ -325,6 +344,7 @@ impl FrozenSamples {
             weight: floats(self.weight.clone(), [s, 1], device),
             ray_of_sample: indices(ray_of_sample, device),
             final_transmittance: floats(self.final_transmittance.clone(), [self.num_rays, 1], device),
+            far: far_tensor(&self.far, device),
         }
     }
 }
@@ -349,6 +369,8 @@ pub struct DeviceSamples {
     weight: Tensor<2>,
     /// `[rays, 1]`.
     final_transmittance: Tensor<2>,
+    /// `[rays, 3]`, when the lists carry a far background.
+    far: Option<Tensor<2>>,
 }
 
 impl DeviceSamples {
@@ -363,6 +385,7 @@ impl DeviceSamples {
             colour_weights: floats(weights, [s, 8], device),
             weight: floats(samples.weight.clone(), [s, 1], device),
             final_transmittance: floats(samples.final_transmittance.clone(), [r, 1], device),
+            far: far_tensor(&samples.far, device),
         }
     }
 
@@ -398,6 +421,7 @@ impl DeviceSamples {
         let marks: Vec<i32> = starts.iter().skip(1).copied().filter(|&s| (s as usize) < total).collect();
         let ray_ids = indices(rays.iter().map(|&r| r as i32).collect(), &device);
         let final_transmittance = select_rows(self.final_transmittance.clone(), ray_ids.clone());
+        let far = self.far.as_ref().map(|far| select_rows(far.clone(), ray_ids.clone()));
         if total == 0 {
             return FrozenTensors {
                 num_rays: rays.len(),
@@ -407,6 +431,7 @@ impl DeviceSamples {
                 weight: Tensor::zeros([0, 1], &device),
                 ray_of_sample: Tensor::zeros([0], &device),
                 final_transmittance,
+                far,
             };
         }
         // Marks summed in f32: exact below 2^24 samples a batch (a chunk holds far fewer).
@@ -429,8 +454,14 @@ impl DeviceSamples {
             weight: select_rows(self.weight.clone(), sample_ids),
             ray_of_sample,
             final_transmittance,
+            far,
         }
     }
+}
+
+/// Far colours `[rays, 3]` on `device`, or `None` for none.
+fn far_tensor(far: &[[f32; 3]], device: &Device) -> Option<Tensor<2>> {
+    (!far.is_empty()).then(|| floats(far.concat(), [far.len(), 3], device))
 }
 
 /// `FrozenSamples` uploaded to a device.
@@ -442,13 +473,18 @@ pub struct FrozenTensors {
     pub weight: Tensor<2>,
     pub ray_of_sample: Tensor<1, Int>,
     pub final_transmittance: Tensor<2>,
+    /// `[rays, 3]` far background colours, else the constant background.
+    pub far: Option<Tensor<2>>,
 }
 
 /// Colours `[rays, 3]` of the rays from degree-0 SH rows `sh` (`[rows, 3]`):
 /// differentiable in `sh` when it is on an autodiff device.
 pub fn render_colour(sh: Tensor<2>, ft: &FrozenTensors, background: [f32; 3]) -> Tensor<2> {
     let device = sh.device();
-    let bg = floats(background.to_vec(), [1, 3], &device);
+    let bg = match &ft.far {
+        Some(far) => far.clone(),
+        None => floats(background.to_vec(), [1, 3], &device),
+    };
     let background_part = ft.final_transmittance.clone() * bg;
     if ft.num_samples == 0 {
         return background_part;

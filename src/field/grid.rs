@@ -9,6 +9,7 @@
 //! column lets the sample generator skip empty space and stop rays early
 //! without touching the tensors.
 
+use crate::field::environment::Environment;
 use crate::scene::sh;
 use crate::util::tensor::{floats, indices, to_vec};
 use crate::util::transfer::human_bytes;
@@ -322,6 +323,9 @@ pub struct RadianceGrid {
     pub sh: Tensor<2>,
     /// Plain copy of `density`, kept in sync by whoever updates the tensor.
     pub density_cpu: Vec<f32>,
+    /// The far background seen through what the grid leaves of a ray (a
+    /// capture around the scene); `None`: the dataset's constant background.
+    pub far: Option<Environment>,
 }
 
 impl RadianceGrid {
@@ -396,6 +400,7 @@ impl RadianceGrid {
             density: floats(density.clone(), [n, 1], device),
             sh: floats(sh_data, [n, cols], device),
             density_cpu: density,
+            far: None,
         }
     }
 
@@ -553,7 +558,9 @@ impl RadianceGrid {
         let density: Vec<f32> = rows.iter().map(|r| r.0).collect();
         let sh_data: Vec<f32> = rows.into_iter().flat_map(|r| r.1).collect();
         let device = placement(active.len(), self.sh_degree, compute)?;
+        let far = self.far.take();
         *self = Self::from_rows(new, self.sh_degree, active, density, sh_data, &device);
+        self.far = far;
         Ok(())
     }
 

@@ -147,7 +147,8 @@ fn composite(
     r: usize,
     background: [f32; 3],
 ) -> [f32; 3] {
-    let mut rgb = background.map(|b| b * samples.final_transmittance[r]);
+    let behind = samples.far.get(r).copied().unwrap_or(background);
+    let mut rgb = behind.map(|b| b * samples.final_transmittance[r]);
     for (s, pre) in coefficients {
         for c in 0..3 {
             rgb[c] += samples.weight[s] * relu(sh::C0 * pre[c] + 0.5);

@@ -43,6 +43,9 @@ pub struct FitGradient {
     pub density: Vec<f32>,
     /// d(mse)/d(SH) per step row, `[rows, 3 * num_basis]`.
     pub sh: Vec<f32>,
+    /// d(mse)/d(background colour) per ray, `[rays, 3]`, when the batch
+    /// carries a far background (`SampleBatch::far`); else empty.
+    pub far: Vec<f32>,
 }
 
 /// The parts' gradient buffers, kept from one step to the next by the
@@ -193,39 +196,45 @@ pub fn mse_gradient(
     let num_parts = n.div_ceil(per_part).max(1);
     buffers.parts.resize_with(num_parts, PartBuffers::default);
     buffers.parts[0].reset(rows, stride);
-    let squared: Vec<f64> = buffers.parts[..num_parts]
+    let with_far = !batch.far.is_empty();
+    let per_part_results: Vec<(f64, Vec<f32>)> = buffers.parts[..num_parts]
         .par_iter_mut()
         .enumerate()
         .map(|(p, part)| {
             if p > 0 {
                 part.grow(rows, stride);
             }
-            let mut squared = 0.0f64;
+            let (mut squared, mut far) = (0.0f64, Vec::new());
             let part_rays = p * per_part..((p + 1) * per_part).min(n);
             if p > 0 {
                 let (lo, hi) = (batch.ray_offsets[part_rays.start] as usize, batch.ray_offsets[part_rays.end] as usize);
                 part.mark(&local[lo * 8..hi * 8]);
             }
             for r in part_rays {
-                let rgb = forward_ray(density, sh, num_basis, batch, local, r, background, &mut part.samples);
+                let behind = batch.background_of(r, background);
+                let (rgb, left) = forward_ray(density, sh, num_basis, batch, local, r, behind, &mut part.samples);
                 let mut g = [0.0f32; 3];
                 for ch in 0..3 {
                     let e = rgb[ch] - target[r * 3 + ch];
                     squared += (e * e) as f64;
                     g[ch] = scale * e;
                 }
+                if with_far {
+                    far.extend(g.map(|g| left * g));
+                }
                 backward_ray(num_basis, batch, local, r, rgb, g, &part.samples, &mut part.density, &mut part.sh);
             }
-            squared
+            (squared, far)
         })
         .collect();
     // The sum in part order, into the first part's buffers.
     let (first, rest) = buffers.parts[..num_parts].split_first_mut().expect("at least one part");
     add_touched_in_order(&mut first.density, &mut first.sh, stride, rest);
     FitGradient {
-        mse: squared.iter().sum::<f64>() / (3 * n.max(1)) as f64,
+        mse: per_part_results.iter().map(|(squared, _)| squared).sum::<f64>() / (3 * n.max(1)) as f64,
         density: std::mem::take(&mut first.density),
         sh: std::mem::take(&mut first.sh),
+        far: per_part_results.into_iter().flat_map(|(_, far)| far).collect(),
     }
 }
 
@@ -242,7 +251,8 @@ struct SampleState {
     transmittance_after: f32,
 }
 
-/// Ray `r`'s colour, keeping each sample's state in `samples`.
+/// Ray `r`'s colour over `background` and the transmittance it leaves,
+/// keeping each sample's state in `samples`.
 #[allow(clippy::too_many_arguments)]
 fn forward_ray(
     density: &[f32],
@@ -253,7 +263,7 @@ fn forward_ray(
     r: usize,
     background: [f32; 3],
     samples: &mut Vec<SampleState>,
-) -> [f32; 3] {
+) -> ([f32; 3], f32) {
     let (lo, hi) = (batch.ray_offsets[r] as usize, batch.ray_offsets[r + 1] as usize);
     samples.clear();
     let (mut rgb, mut optical) = ([0.0f32; 3], 0.0f32);
@@ -280,7 +290,7 @@ fn forward_ray(
     for (value, b) in rgb.iter_mut().zip(background) {
         *value += left * b;
     }
-    rgb
+    (rgb, left)
 }
 
 /// Adds ray `r`'s gradients, given d(loss)/d(colour) `g`, into the step rows.

@@ -136,7 +136,8 @@ pub fn render_rays(
                     d += weight * s.t;
                 });
                 let left = (-optical).exp();
-                for (value, b) in colour.iter_mut().zip(background) {
+                let behind = grid.far.as_ref().map_or(background, |far| far.colour(ray.view_dir));
+                for (value, b) in colour.iter_mut().zip(behind) {
                     *value += left * b;
                 }
                 rgb[i * 3..i * 3 + 3].copy_from_slice(&colour);

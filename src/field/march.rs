@@ -75,6 +75,9 @@ pub struct SampleBatch {
     pub basis: Vec<f32>,
     /// Equation-4 depth per ray (None = miss), from the density mirror.
     pub threshold_depth: Vec<Option<f32>>,
+    /// The far background's colour per ray (`RadianceGrid::far`); empty
+    /// when the grid has none and the constant background applies.
+    pub far: Vec<[f32; 3]>,
 }
 
 impl SampleBatch {
@@ -90,6 +93,13 @@ impl SampleBatch {
         self.delta.clear();
         self.basis.clear();
         self.threshold_depth.clear();
+        self.far.clear();
+    }
+
+    /// The background behind ray `r`: the far map's colour there, else `constant`.
+    #[inline]
+    pub fn background_of(&self, r: usize, constant: [f32; 3]) -> [f32; 3] {
+        self.far.get(r).copied().unwrap_or(constant)
     }
 
     pub fn num_samples(&self) -> usize {
@@ -127,6 +137,7 @@ impl SampleBatch {
             delta: self.delta[lo..hi].to_vec(),
             basis: self.basis[lo * nb..hi * nb].to_vec(),
             threshold_depth: self.threshold_depth[first..first + count].to_vec(),
+            far: self.far.get(first..first + count).map(<[_]>::to_vec).unwrap_or_default(),
         }
     }
 }
@@ -532,6 +543,7 @@ impl<'a> Marcher<'a> {
             let base = *b.ray_offsets.last().expect("the leading 0");
             b.ray_offsets.extend(piece.ray_offsets[1..].iter().map(|o| o + base));
             b.threshold_depth.extend_from_slice(&piece.threshold_depth);
+            b.far.extend_from_slice(&piece.far);
         }
         // The per-sample arrays (tens of MB on fern) side by side, each
         // piece in order.
@@ -562,6 +574,9 @@ impl<'a> Marcher<'a> {
                 b.basis.extend_from_slice(&basis);
             });
             b.threshold_depth.push(depth);
+            if let Some(far) = &grid.far {
+                b.far.push(far.colour(ray.view_dir));
+            }
             b.ray_offsets.push(b.t.len() as u32);
         }
         b

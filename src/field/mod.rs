@@ -2,7 +2,8 @@
 //! Rust (`march`), the differentiable compositing graph (`composite`), the
 //! colour-only renderer over frozen density (`frozen`; `host_colour`, its
 //! fused plain-Rust twin for the CPU backends), what the optimisers
-//! share (`optim`) and single-file checkpoints (`checkpoint`).
+//! share (`optim`), the far background behind the box (`environment`) and
+//! single-file checkpoints (`checkpoint`).
 
 pub mod checkpoint;
 pub mod composite;

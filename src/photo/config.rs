@@ -27,6 +27,33 @@ pub struct GridConfig {
     pub init_density: f32,
     /// Voxels whose density (and their neighbours') is below this are pruned before upsampling.
     pub prune_threshold: f32,
+    /// Whether the field learns a far background behind the box
+    /// (`field::environment`): `auto` does for captures around the scene
+    /// read from COLMAP or `transforms.json`, where a room or landscape
+    /// lies beyond the box; the research layouts have a constant one.
+    pub far_background: FarBackground,
+    /// The far map's size, `[width, height]` texels (azimuth, polar angle).
+    pub far_resolution: [usize; 2],
+}
+
+/// When a fit learns a far background (`GridConfig::far_background`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum FarBackground {
+    #[default]
+    Auto,
+    On,
+    Off,
+}
+
+impl GridConfig {
+    /// Whether a fit of a dataset of this kind (`ndc`: forward-facing)
+    /// learns a far background. Forward-facing captures never do: NDC
+    /// already reaches to infinity.
+    pub fn learns_far_background(&self, kind: DatasetKind, ndc: bool) -> bool {
+        let around = matches!(kind, DatasetKind::Colmap | DatasetKind::Transforms);
+        !ndc && (self.far_background == FarBackground::On || (self.far_background == FarBackground::Auto && around))
+    }
 }
 
 impl Default for GridConfig {
@@ -38,6 +65,8 @@ impl Default for GridConfig {
             sh_degree: 2,
             init_density: 0.1,
             prune_threshold: 1.0,
+            far_background: FarBackground::Auto,
+            far_resolution: [128, 64],
         }
     }
 }
@@ -218,6 +247,9 @@ impl TrainConfig {
         }
         if !(g.init_density.is_finite() && g.prune_threshold.is_finite() && g.prune_threshold >= 0.0) {
             bail!("grid.init_density must be finite and grid.prune_threshold >= 0");
+        }
+        if g.far_resolution.iter().any(|&r| !(1..=4096).contains(&r)) {
+            bail!("grid.far_resolution must be between 1 and 4096 texels per axis, got {:?}", g.far_resolution);
         }
         if o.steps == 0 || o.batch_rays == 0 {
             bail!("optim.steps and optim.batch_rays must be positive");

@@ -21,13 +21,14 @@ use std::path::Path;
 
 use crate::field::checkpoint::{self, CheckpointMeta};
 use crate::field::composite::{self, BatchTensors};
+use crate::field::environment::{Environment, FarOptimiser};
 use crate::field::grid::{GridGeometry, RadianceGrid, kept_on_host};
 use crate::field::host_fit::{self, FitBuffers};
 use crate::field::march::{BlockOccupancy, Marcher, SampleBatch};
 use crate::field::optim::{
     RmsStart, Rmsprop, RowSubset, TvNorm, add_tv_gradient_per_channel, log_lerp, total_variation,
 };
-use crate::photo::config::TrainConfig;
+use crate::photo::config::{FarBackground, TrainConfig};
 use crate::scene::camera::Ray;
 use crate::scene::data::Dataset;
 use crate::util::backend::max_buffer_bytes;
@@ -62,6 +63,8 @@ pub struct Trainer {
     rays: Vec<Ray>,
     colours: Vec<[f32; 3]>,
     background: [f32; 3],
+    /// The far background's optimiser (when the grid has one).
+    far_optimiser: FarOptimiser,
     /// Empty-space skipping structure of the current grid (None: rebuild).
     occupancy: Option<BlockOccupancy>,
     /// The rows of the current step (reused between steps).
@@ -194,7 +197,14 @@ impl Trainer {
     pub fn new(dataset: &Dataset, config: TrainConfig, backend_device: &Device) -> Result<Self> {
         config.validate()?;
         let geo = GridGeometry::new(config.grid.initial_res, dataset.bbox_min, dataset.bbox_max);
-        let grid = RadianceGrid::new_dense(geo, config.grid.sh_degree, config.grid.init_density, backend_device)?;
+        let mut grid = RadianceGrid::new_dense(geo, config.grid.sh_degree, config.grid.init_density, backend_device)?;
+        if config.grid.learns_far_background(dataset.kind, dataset.ndc.is_some()) {
+            grid.far = Some(initial_far(dataset, config.grid.far_resolution));
+        } else if config.grid.far_background == FarBackground::On {
+            bail!(
+                "grid.far_background = \"on\" needs a capture around the scene: a forward-facing (NDC) one reaches to infinity already"
+            );
+        }
         let state = RmsState::zeros(&grid);
         Ok(Self::assemble(dataset, config, grid, state, 0, 0.0, backend_device))
     }
@@ -234,6 +244,7 @@ impl Trainer {
             rays,
             colours,
             background: dataset.background,
+            far_optimiser: FarOptimiser::default(),
             occupancy: None,
             subset: RowSubset::default(),
             fit_buffers: FitBuffers::default(),
@@ -311,10 +322,11 @@ impl Trainer {
             let local = step_rows(&self.grid, &batch.corner_rows, &mut self.subset, cfg.optim.tv_fraction, &mut rng);
             (local, indices(self.subset.rows().to_vec(), &plain))
         });
-        let mse_value = match self.host_kernel {
+        let (mse_value, far_grad) = match self.host_kernel {
             true => self.host_step(&batch, &local, &rows_t, &target, &profile),
             false => self.graph_step(&batch, &local, &rows_t, &target, &profile),
         };
+        profile.time("far", || self.far_step(&rays, &far_grad));
         self.profile = profile;
         self.step += 1;
         let stats = StepStats {
@@ -325,6 +337,19 @@ impl Trainer {
         };
         self.batch = batch;
         Ok(stats)
+    }
+
+    /// The far background's update from its colours' gradients per ray
+    /// (`[rays, 3]`; empty when the grid has none), at the SH's learning rate.
+    fn far_step(&mut self, rays: &[Ray], per_ray: &[f32]) {
+        let (_, lr) = self.learning_rates();
+        let o = &self.config.optim;
+        let Some(far) = self.grid.far.as_mut() else { return };
+        let mut grad = vec![0.0f32; far.rgb.len()];
+        for (ray, g) in rays.iter().zip(per_ray.chunks_exact(3)) {
+            far.add_gradient(ray.view_dir, [g[0], g[1], g[2]], &mut grad);
+        }
+        self.far_optimiser.step(far, &grad, lr, o.rmsprop_beta, o.eps);
     }
 
     /// The RMSprop optimiser of this run.
@@ -343,8 +368,8 @@ impl Trainer {
         rows_t: &Tensor<1, Int>,
         target: &[f32],
         profile: &StepProfile,
-    ) -> f32 {
-        let (gd, gs, mse) = profile.time("gradient", || self.graph_gradients(batch, local, rows_t, target));
+    ) -> (f32, Vec<f32>) {
+        let (gd, gs, mse, far) = profile.time("gradient", || self.graph_gradients(batch, local, rows_t, target));
         profile.time("update", || {
             let (lr_d, lr_s) = self.learning_rates();
             let rmsprop = self.rmsprop();
@@ -356,7 +381,7 @@ impl Trainer {
                 self.grid.density_cpu[*r as usize] = v;
             }
         });
-        mse
+        (mse, far)
     }
 
     /// The same step in plain Rust (the CPU backends): the step's rows and
@@ -375,7 +400,7 @@ impl Trainer {
         rows_t: &Tensor<1, Int>,
         target: &[f32],
         profile: &StepProfile,
-    ) -> f32 {
+    ) -> (f32, Vec<f32>) {
         let stride = 3 * self.grid.num_basis();
         let (mse, mut grads) = profile.time("gradient", || {
             let buf = &mut self.step_buffers;
@@ -431,8 +456,9 @@ impl Trainer {
             );
             rmsprop.host_step_rows(&mut grid.sh, &mut state.sh, rows, rows_t, grad_sh, lr_s);
         });
+        let far = std::mem::take(&mut grads.far);
         self.fit_buffers.keep(grads);
-        mse
+        (mse, far)
     }
 
     /// The step's gradients (density `[rows, 1]`, SH `[rows, 3 nb]`) and its
@@ -448,7 +474,7 @@ impl Trainer {
         local: &TvNeighbours,
         rows_t: &Tensor<1, Int>,
         target: &[f32],
-    ) -> (Tensor<2>, Tensor<2>, f32) {
+    ) -> (Tensor<2>, Tensor<2>, f32, Vec<f32>) {
         // The step's rows, moved to where the steps run when the grid is kept in host memory.
         let (storage, plain, subset) = (self.grid.device(), &self.compute, &self.subset);
         let density = self.grid.density.clone().select(0, rows_t.clone()).to_device(plain);
@@ -458,6 +484,7 @@ impl Trainer {
         // The batch's MSE is its squared errors' sum over 3 x rays.
         let per_value = 1.0 / (3 * batch.num_rays.max(1)) as f32;
         let (mut gd, mut gs, mut squared) = (None::<Tensor<2>>, None::<Tensor<2>>, 0.0f32);
+        let mut far = Vec::new();
         for (i, &(first, count)) in runs.iter().enumerate() {
             let cut;
             let run = match runs.len() {
@@ -467,7 +494,10 @@ impl Trainer {
                     &cut
                 }
             };
-            let bt = BatchTensors::new(run, Some(&|r: i32| subset.local(r)), plain);
+            let mut bt = BatchTensors::new(run, Some(&|r: i32| subset.local(r)), plain);
+            // The far colours are a leaf too: their gradients train the far map.
+            let far_leaf = bt.far.take().map(|f| f.autodiff().require_grad());
+            bt.far = far_leaf.clone();
             let ld = density.clone().autodiff().require_grad();
             let ls = sh.clone().autodiff().require_grad();
             let out = composite::composite(ld.clone(), ls.clone(), &bt, self.background);
@@ -486,12 +516,15 @@ impl Trainer {
             };
             gd = add(gd, ld.grad(&grads));
             gs = add(gs, ls.grad(&grads));
+            if let Some(leaf) = &far_leaf {
+                far.extend(leaf.grad(&grads).map_or_else(|| vec![0.0; 3 * count], to_vec));
+            }
             squared += scalar(run_squared.inner());
         }
         let back = |sum: Option<Tensor<2>>, like: &Tensor<2>| {
             sum.unwrap_or_else(|| Tensor::zeros(like.dims(), plain)).to_device(&storage)
         };
-        (back(gd, &density), back(gs, &sh), squared * per_value)
+        (back(gd, &density), back(gs, &sh), squared * per_value, far)
     }
 
     /// The TV terms on the step's TV rows (zero when there are none).
@@ -538,4 +571,18 @@ impl Trainer {
         let (meta, grid, state) = (self.meta(dataset), &self.grid, &self.state);
         move |out| checkpoint::save(&out.join(checkpoint::CHECKPOINT_FILE), &meta, grid, &state.density, &state.sh)
     }
+}
+
+/// A far map to start from: the training photos' mean colour everywhere.
+fn initial_far(dataset: &Dataset, [width, height]: [usize; 2]) -> Environment {
+    let (mut sum, mut count) = ([0.0f64; 3], 0usize);
+    for view in &dataset.train {
+        for px in view.rgb.chunks_exact(3) {
+            for (s, &v) in sum.iter_mut().zip(px) {
+                *s += v as f64;
+            }
+            count += 1;
+        }
+    }
+    Environment::uniform(width, height, sum.map(|s| (s / count.max(1) as f64) as f32))
 }

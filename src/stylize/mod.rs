@@ -22,7 +22,8 @@
 //!
 //! Modules: `config` (the TOML settings), `losses`, `tcm` (template
 //! correspondence and colour targets), `colour_transfer` (ARF's
-//! preprocessing), `styles` (reading style images), `field` (the style
+//! preprocessing), `styles` (reading style images), `far` (the far
+//! background painted and recoloured from the references), `field` (the style
 //! field, its optimiser and chunked gradients), `samples` (the rays the
 //! losses draw from and their frozen sample lists), `step` (one image step,
 //! one refit step), `guides` (content renders, TCM matches, colour targets),
@@ -32,6 +33,7 @@
 pub mod colour_map;
 pub mod colour_transfer;
 pub mod config;
+pub mod far;
 pub mod field;
 pub(crate) mod guides;
 pub mod losses;

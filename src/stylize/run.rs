@@ -110,6 +110,9 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let mut st =
         Stylization::new(job, StyleStep::new(job, &dataset, ck.grid, &photo_meta, registration), colour_transfer);
     let start = st.refit_or_resume(resumed.as_ref(), &mut phases, progress)?;
+    if job.method == Method::RefNpr {
+        st.step.stylize_far(progress);
+    }
     let colour = job.method == Method::RefNpr && job.config.ablation.use_colour_loss && case.color_pre;
     st.fit_colour_map(&styles, progress);
     let (guidance, colour_matched) = st.content_phase(&styles, colour, image_size, &mut phases, progress)?;

@@ -239,6 +239,37 @@ impl<'a> SampleCache<'a> {
         }
     }
 
+    /// Every list's far colours read again from `grid`'s far map (after
+    /// the stylization changed it), the device copies uploaded again.
+    pub fn refresh_far(&mut self, grid: &RadianceGrid, device: &burn::tensor::Device) {
+        let ndc = self.ndc;
+        let reference_rays: Vec<Ray> =
+            self.registration.references.iter().flat_map(|r| r.camera.rays(ndc.as_ref())).collect();
+        self.reference_lists.refresh_far(grid, &reference_rays);
+        for (v, lists) in self.views.iter_mut().enumerate() {
+            if let Some(lists) = lists {
+                lists.refresh_far(grid, &self.dataset.train[v].camera.rays(ndc.as_ref()));
+            }
+        }
+        if let Some(mut lists) = self.registered_samples.take() {
+            let rays: Vec<Ray> = self.registered.iter().map(|p| self.pixel_ray(p.0 as usize, p.1 as usize)).collect();
+            lists.refresh_far(grid, &rays);
+            self.registered_samples = Some(lists);
+        }
+        let upload = |s: &FrozenSamples| DeviceSamples::upload(s, device);
+        for (copy, lists) in self.views_on_device.iter_mut().zip(&self.views) {
+            if copy.is_some() {
+                *copy = lists.as_ref().map(upload);
+            }
+        }
+        if self.reference_on_device.is_some() {
+            self.reference_on_device = Some(upload(&self.reference_lists));
+        }
+        if self.registered_on_device.is_some() {
+            self.registered_on_device = self.registered_samples.as_ref().map(upload);
+        }
+    }
+
     /// Caches the registered pixels' sample lists when they fit in what is
     /// left of `budget` (`used` bytes taken).
     fn cache_registered(&mut self, grid: &RadianceGrid, budget: usize, used: &mut usize) {

@@ -25,6 +25,7 @@ use crate::reference::registration::RegistrationFile;
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::config::{LrSchedule, StylizeConfig, TransferPixels, WhiteOn};
+use crate::stylize::far::stylized_far;
 use crate::stylize::field::{
     DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, render_chunks,
     render_gathered,
@@ -36,6 +37,7 @@ use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, StoredFeat
 use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
 use crate::util::image::Image;
 use crate::util::profile::{PartTime, StepProfile};
+use crate::util::progress::{Event, Progress};
 use crate::util::rng::{Stream, step_rng};
 use crate::util::tensor::{floats, scalar, to_vec};
 use crate::vgg::{Vgg16, VggLayer};
@@ -209,6 +211,18 @@ impl<'a> StyleStep<'a> {
     /// The colour of rays that miss the scene (the photoreal run's).
     pub fn background(&self) -> [f32; 3] {
         self.background
+    }
+
+    /// Ref-NPR, after the refit (which fits the photos, far background
+    /// included): the far map stylized by the references
+    /// (`stylize::far`), and the sample lists made to see it.
+    pub fn stylize_far(&mut self, progress: &dyn Progress) {
+        let references = &self.samples.registration.references;
+        if let Some(far) = stylized_far(&self.field.grid, references, &self.samples.march(), &self.cfg.colour_map) {
+            self.field.grid.far = Some(far);
+            self.samples.refresh_far(&self.field.grid, &self.device);
+            progress.event(Event::Detail("far background painted and recoloured from the references".into()));
+        }
     }
 
     /// Caches the sample lists (once; `samples::SampleCache::cache`).

@@ -73,18 +73,27 @@ pub struct FieldHeader {
     pub index_bytes: usize,
     pub density_bytes: usize,
     pub sh_bytes: usize,
+    /// The far background's `[width, height]` (`field::environment`), when
+    /// the field has one; its RGB (f32) follows the SH in `field.bin`.
+    #[serde(default)]
+    pub far: Option<[usize; 2]>,
+    #[serde(default)]
+    pub far_bytes: usize,
 }
 
 /// A packed field: the page's header and the textures it describes.
 pub struct PackedField {
     pub header: FieldHeader,
     pub lattice: Lattice,
+    /// The far background's interleaved RGB (empty without one).
+    pub far: Vec<f32>,
 }
 
 impl PackedField {
     /// `field.bin`: the header's length (u32), its JSON, zero padding to a
     /// multiple of 4, then the index (i32), the density (f32) and the SH
-    /// (f16 bits), all little-endian, x fastest in every texture; written
+    /// (f16 bits), then the far background's RGB (f32) when there is one,
+    /// all little-endian, x fastest in every texture; written
     /// once into one buffer (fern's is 0.4 GB).
     pub fn to_file(&self) -> Result<Vec<u8>> {
         let h = &self.header;
@@ -98,6 +107,7 @@ impl PackedField {
         l.index.iter().for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
         l.density.iter().for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
         l.sh_bits.iter().for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+        self.far.iter().for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
         Ok(out)
     }
 }
@@ -141,8 +151,11 @@ pub fn pack(ck: &Checkpoint) -> Result<PackedField> {
         index_bytes: lattice.index.len() * 4,
         density_bytes: lattice.density.len() * 4,
         sh_bytes: lattice.sh_bits.len() * 2,
+        far: ck.grid.far.as_ref().map(|f| [f.width, f.height]),
+        far_bytes: ck.grid.far.as_ref().map_or(0, |f| f.rgb.len() * 4),
     };
-    Ok(PackedField { header, lattice })
+    let far = ck.grid.far.as_ref().map(|f| f.rgb.clone()).unwrap_or_default();
+    Ok(PackedField { header, lattice, far })
 }
 
 /// The index and the atlas of `grid`.

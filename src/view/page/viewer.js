@@ -4,7 +4,9 @@
 // along the ray, trilinear density over the cell's 8 lattice points (empty
 // points count as zero), colour from the SH coefficients interpolated over
 // the active points (renormalised), alpha 1 - exp(-relu(sigma) step), the
-// ray stopped below the transmittance threshold, the background behind.
+// ray stopped below the transmittance threshold, the background behind: the
+// far map (src/field/environment.rs: equirectangular, z up, bilinear between
+// texel centres, wrapping in azimuth) or the constant colour as a 1x1 map.
 // The field comes packed by src/view/pack.rs (read its comment for the layout).
 'use strict';
 
@@ -39,7 +41,7 @@ uniform float u_height;  // the image's height in pixels
 uniform vec3 u_bmin, u_bmax, u_voxel;
 uniform ivec3 u_res;
 uniform ivec3 u_atlas;   // bricks per side
-uniform vec3 u_background;
+uniform highp sampler2D u_far;
 uniform vec4 u_ndc;      // width, height, focal, near
 uniform float u_step, u_sigma_threshold, u_log_stop;
 uniform int u_max_samples;
@@ -54,6 +56,22 @@ void basis_of(vec3 d, out float basis[${Math.max(nb, 1)}]) {
   ${nb >= 9 ? `basis[4] = 1.0925484 * d.x * d.y; basis[5] = -1.0925484 * d.y * d.z;
   basis[6] = 0.31539157 * (2.0 * d.z * d.z - d.x * d.x - d.y * d.y);
   basis[7] = -1.0925484 * d.x * d.z; basis[8] = 0.5462742 * (d.x * d.x - d.y * d.y);` : ''}
+}
+
+// Environment::colour: the far map in world direction d.
+vec3 far_colour(vec3 d) {
+  const float PI = 3.14159265358979;
+  ivec2 size = textureSize(u_far, 0);
+  d = normalize(d);
+  float u = (atan(d.y, d.x) + PI) / (2.0 * PI) * float(size.x) - 0.5;
+  float v = acos(clamp(d.z, -1.0, 1.0)) / PI * float(size.y) - 0.5;
+  float u0 = floor(u), v0 = floor(v);
+  float fu = u - u0, fv = v - v0;
+  int c0 = int(mod(u0, float(size.x))), c1 = int(mod(u0 + 1.0, float(size.x)));
+  int r0 = clamp(int(v0), 0, size.y - 1), r1 = clamp(int(v0) + 1, 0, size.y - 1);
+  vec3 a = texelFetch(u_far, ivec2(c0, r0), 0).rgb, b = texelFetch(u_far, ivec2(c1, r0), 0).rgb;
+  vec3 c = texelFetch(u_far, ivec2(c0, r1), 0).rgb, e = texelFetch(u_far, ivec2(c1, r1), 0).rgb;
+  return (1.0 - fu) * (1.0 - fv) * a + fu * (1.0 - fv) * b + (1.0 - fu) * fv * c + fu * fv * e;
 }
 
 int entry_of(ivec3 q) { return texelFetch(u_index, q / ${BRICK}, 0).r; }
@@ -157,7 +175,7 @@ void main() {
       if (-optical < u_log_stop) break;
     }
   }
-  colour += exp(-optical) * u_background;
+  colour += exp(-optical) * far_colour(view_dir);
   out_colour = vec4(clamp(colour, 0.0, 1.0), 1.0);
 }`;
 }
@@ -190,7 +208,10 @@ function uploadRun(gl, buffer) {
   let offset = Math.ceil((4 + headerLength) / 4) * 4;
   const index = new Int32Array(buffer, offset, h.index_bytes / 4); offset += h.index_bytes;
   const density = new Float32Array(buffer, offset, h.density_bytes / 4); offset += h.density_bytes;
-  const sh = new Uint16Array(buffer, offset, h.sh_bytes / 2);
+  const sh = new Uint16Array(buffer, offset, h.sh_bytes / 2); offset += h.sh_bytes;
+  // The far map, or the constant background as a map of one texel.
+  const farSize = h.far || [1, 1];
+  const farRgb = h.far ? new Float32Array(buffer, offset, h.far_bytes / 4) : new Float32Array(h.background);
   const atlasSize = h.atlas.map(a => a * h.brick);
   const texels = atlasSize[0] * atlasSize[1] * atlasSize[2];
   const textures = [
@@ -201,18 +222,26 @@ function uploadRun(gl, buffer) {
     textures.push(texture3d(gl, 2 + i, gl.RGBA16F, gl.RGBA, gl.HALF_FLOAT, atlasSize,
       sh.subarray(i * texels * 4, (i + 1) * texels * 4)));
   }
+  const far = gl.createTexture();
+  gl.activeTexture(gl.TEXTURE0 + textures.length);
+  gl.bindTexture(gl.TEXTURE_2D, far);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+  gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+  gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB32F, farSize[0], farSize[1], 0, gl.RGB, gl.FLOAT, farRgb);
   const program = gl.createProgram();
   gl.attachShader(program, compile(gl, VERTEX, gl.VERTEX_SHADER));
   gl.attachShader(program, compile(gl, fragmentSource(h), gl.FRAGMENT_SHADER));
   gl.linkProgram(program);
   if (!gl.getProgramParameter(program, gl.LINK_STATUS)) throw new Error('link: ' + gl.getProgramInfoLog(program));
-  const bytes = h.index_bytes + h.density_bytes + h.sh_bytes;
-  return { header: h, textures, program, bytes };
+  const bytes = h.index_bytes + h.density_bytes + h.sh_bytes + (h.far_bytes || 0);
+  return { header: h, textures, far, program, bytes };
 }
 
 function releaseRun(gl, run) {
   if (!run) return;
   run.textures.forEach(t => gl.deleteTexture(t));
+  gl.deleteTexture(run.far);
   gl.deleteProgram(run.program);
 }
 
@@ -227,6 +256,9 @@ function drawRun(gl, run, cam) {
     gl.activeTexture(gl.TEXTURE0 + i);
     gl.bindTexture(gl.TEXTURE_3D, run.textures[i]);
   }
+  gl.activeTexture(gl.TEXTURE0 + run.textures.length);
+  gl.bindTexture(gl.TEXTURE_2D, run.far);
+  gl.uniform1i(u('u_far'), run.textures.length);
   gl.uniform1i(u('u_index'), 0);
   gl.uniform1i(u('u_density'), 1);
   for (let i = 0; i < h.sh_textures; i++) gl.uniform1i(u(`u_sh${i}`), 2 + i);
@@ -242,7 +274,6 @@ function drawRun(gl, run, cam) {
   gl.uniform3fv(u('u_voxel'), voxel);
   gl.uniform3iv(u('u_res'), g.res);
   gl.uniform3iv(u('u_atlas'), h.atlas);
-  gl.uniform3fv(u('u_background'), h.background);
   const ndc = h.ndc;
   gl.uniform4f(u('u_ndc'), ndc ? ndc.width : 0, ndc ? ndc.height : 0, ndc ? ndc.focal : 0, ndc ? ndc.near : 0);
   gl.uniform1f(u('u_step'), h.step);
