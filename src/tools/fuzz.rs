@@ -629,7 +629,9 @@ fn write_tiny_checkpoint(file: &Path) -> Result<()> {
     let density = vec![0.5, 1.0, 2.0, 0.0];
     let sh: Vec<f32> = (0..coords.len() * 12).map(|i| i as f32 * 0.1).collect();
     let device = BackendKind::Flex.device();
-    let grid = RadianceGrid::from_rows(geometry, 1, coords, density, sh, &device);
+    let mut grid = RadianceGrid::from_rows(geometry, 1, coords, density, sh, &device);
+    // A far background too, so that its tensor's header and values are mutated.
+    grid.far = Some(crate::field::environment::Environment::uniform(4, 2, [0.3, 0.5, 0.7]));
     let config = TrainConfig::for_kind(DatasetKind::Blender);
     let meta = CheckpointMeta {
         step: 3,
