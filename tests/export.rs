@@ -221,7 +221,8 @@ fn bad_exports_are_refused_and_leave_no_file() {
     let zeros = vec![0.0; g.num_rows()];
     let empty = RadianceGrid::from_rows(ck.meta.geometry, g.sh_degree, g.coords.clone(), zeros, g.sh_cpu(), &dev);
     let empty_run = t.path().join("empty");
-    checkpoint::save(&empty_run.join("checkpoint.bin"), &ck.meta, &empty, &ck.opt_density, &ck.opt_sh).unwrap();
+    checkpoint::save(&empty_run.join("checkpoint.bin"), &ck.meta, &empty, &ck.opt_density, &ck.opt_sh, &ck.opt_far)
+        .unwrap();
     let (ok, log) = export(&empty_run, "splat", &out, &[]);
     assert!(!ok && log.contains("no point of the field"), "{log}");
     let (ok, log) = export(&empty_run, "mesh", &out, &[]);

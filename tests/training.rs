@@ -171,7 +171,7 @@ fn a_checkpoint_streamed_in_blocks_is_a_safetensors_file_of_its_arrays() {
         train_seconds: 1.5,
     };
     let path = t.path().join("run").join(checkpoint::CHECKPOINT_FILE);
-    checkpoint::save(&path, &meta, &grid, &opt_density, &opt_sh).unwrap();
+    checkpoint::save(&path, &meta, &grid, &opt_density, &opt_sh, &[]).unwrap();
     let whole = Whole {
         meta_json: serde_json::to_string(&meta).unwrap(),
         coords: grid.coords.clone(),
@@ -245,9 +245,11 @@ fn resuming_with_more_steps_extends_the_run() {
 #[test]
 fn a_resumed_run_ends_where_an_uninterrupted_one_does() {
     let t = TempDir::new("resume");
-    let ds = tiny_scene(&t.path().join("scene"));
+    let ds = tiny_scene_in(&t.path().join("scene"), true);
     let dev = common::device();
-    let cfg = tiny_config(40); // upsampling at step 20 falls inside the resumed part
+    // Upsampling at step 20 falls inside the resumed part; the far
+    // background's RMSprop averages are resumed too.
+    let cfg = with_far(tiny_config(40), true);
     let mut full = Trainer::new(&ds, cfg.clone(), &dev).unwrap();
     while full.step < 40 {
         full.step_once().unwrap();
@@ -267,10 +269,13 @@ fn a_resumed_run_ends_where_an_uninterrupted_one_does() {
     while resumed.step < 40 {
         resumed.step_once().unwrap();
     }
-    assert_eq!(resumed.grid.coords, full.grid.coords);
+    assert!(resumed.grid.coords == full.grid.coords, "the resumed run pruned other voxels");
     let (a, b) = (to_vec(resumed.grid.sh.clone()), to_vec(full.grid.sh.clone()));
     let max_diff = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
     assert!(max_diff < common::tol(1e-4), "resumed and uninterrupted grids differ by {max_diff}");
+    let (a, b) = (resumed.grid.far.unwrap().rgb, full.grid.far.unwrap().rgb);
+    let far_diff = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    assert!(far_diff < common::tol(1e-4), "resumed and uninterrupted far backgrounds differ by {far_diff}");
 }
 
 #[test]

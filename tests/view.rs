@@ -102,7 +102,8 @@ fn the_server_sends_the_page_and_the_runs_reloads_a_new_checkpoint_and_refuses_t
     let doubled: Vec<f32> = g.density_cpu.iter().map(|d| 2.0 * d).collect();
     let changed = RadianceGrid::from_rows(ck.meta.geometry, g.sh_degree, g.coords.clone(), doubled, g.sh_cpu(), &dev);
     std::thread::sleep(std::time::Duration::from_millis(20)); // a modification time apart
-    checkpoint::save(&run.join("checkpoint.bin"), &ck.meta, &changed, &ck.opt_density, &ck.opt_sh).unwrap();
+    checkpoint::save(&run.join("checkpoint.bin"), &ck.meta, &changed, &ck.opt_density, &ck.opt_sh, &ck.opt_far)
+        .unwrap();
     let (_, version_after) = get(at, "/runs/0/version");
     assert_ne!(version, version_after, "the version follows the checkpoint");
     let (_, field_after) = get(at, "/runs/0/field.bin");

@@ -68,8 +68,10 @@ struct Payload {
     opt_density: Vec<f32>,
     opt_sh: Vec<f32>,
     /// The far background, when the field has one (tensor `far`, F32
-    /// `[height, width, 3]`).
+    /// `[height, width, 3]`), and its RMSprop averages (`opt_far`, the same
+    /// shape, or empty).
     far: Option<Environment>,
+    opt_far: Vec<f32>,
 }
 
 /// A loaded checkpoint.
@@ -82,6 +84,8 @@ pub struct Checkpoint {
     /// empty, 0 rows, when loaded without optimiser state).
     pub opt_density: Tensor<2>,
     pub opt_sh: Tensor<2>,
+    /// The far background's RMSprop averages (empty when absent or not loaded).
+    pub opt_far: Vec<f32>,
 }
 
 impl Checkpoint {
@@ -128,6 +132,7 @@ pub fn save(
     grid: &RadianceGrid,
     opt_density: &Tensor<2>,
     opt_sh: &Tensor<2>,
+    opt_far: &[f32],
 ) -> Result<()> {
     let meta_json = serde_json::to_string(meta)?;
     let arrays = [
@@ -155,6 +160,9 @@ pub fn save(
             bail!("refusing to write {}: the far background holds NaN values{nothing_kept}", path.display());
         }
         tensors.push(("far", DType::F32, vec![far.height, far.width, 3]));
+        if opt_far.len() == far.rgb.len() {
+            tensors.push(("opt_far", DType::F32, vec![far.height, far.width, 3]));
+        }
     }
     let (header, _) = safetensors::header(&tensors, &metadata);
     files::write_atomic(path, |w| {
@@ -177,6 +185,9 @@ pub fn save(
         }
         if let Some(far) = &grid.far {
             safetensors::write_values(w, &far.rgb, f32::to_le_bytes, &mut scratch).map_err(io)?;
+            if opt_far.len() == far.rgb.len() {
+                safetensors::write_values(w, opt_far, f32::to_le_bytes, &mut scratch).map_err(io)?;
+            }
         }
         Ok(())
     })
@@ -241,6 +252,7 @@ fn load_parts(path: &Path, device: &Device, optimiser_state: bool, view_independ
     let sh = if view_independent { dc_band(&p.sh, cols / 3) } else { p.sh };
     let mut grid = RadianceGrid::from_rows(meta.geometry, grid_degree, p.coords, p.density, sh, device);
     grid.far = p.far;
+    let opt_far = if optimiser_state { p.opt_far } else { Vec::new() };
     let (opt_density, opt_sh) = if !optimiser_state {
         (Tensor::zeros([0, 1], device), Tensor::zeros([0, cols], device))
     } else {
@@ -257,7 +269,7 @@ fn load_parts(path: &Path, device: &Device, optimiser_state: bool, view_independ
             },
         )
     };
-    Ok(Checkpoint { source: path, meta, grid, opt_density, opt_sh })
+    Ok(Checkpoint { source: path, meta, grid, opt_density, opt_sh, opt_far })
 }
 
 /// The lattice's point count, when a fit could have written it for `rows`
@@ -341,7 +353,13 @@ fn read_safetensors(r: &mut (impl Read + Seek), len: u64, optimiser_state: bool)
         }
         Some(e) => return Err(invalid(format!("a far background of shape {:?} (want [height, width, 3])", e.shape))),
     };
-    Ok(Payload { meta_json, coords, density, sh, opt_density, opt_sh, far })
+    let opt_far = match (&far, entries.get("opt_far")) {
+        (Some(f), Some(e)) if optimiser_state && e.dtype == DType::F32 && e.num_elements() == f.rgb.len() => {
+            safetensors::read_values(r, data, e, f32::from_le_bytes)?
+        }
+        _ => Vec::new(),
+    };
+    Ok(Payload { meta_json, coords, density, sh, opt_density, opt_sh, far, opt_far })
 }
 
 /// The legacy file's fields, read straight into their vectors (`bin_fields`);
@@ -355,6 +373,7 @@ fn read_legacy(mut r: bin_fields::FieldReader<impl BufRead + Seek>, optimiser_st
         opt_density: Vec::new(),
         opt_sh: Vec::new(),
         far: None,
+        opt_far: Vec::new(),
     };
     if optimiser_state {
         p.opt_density = r.read_vec(f32::from_le_bytes)?;

@@ -87,7 +87,7 @@ impl Environment {
 #[derive(Debug, Clone, Default)]
 pub struct FarOptimiser {
     /// Running average of each value's squared gradient (empty: all zero).
-    mean_square: Vec<f32>,
+    pub mean_square: Vec<f32>,
 }
 
 impl FarOptimiser {

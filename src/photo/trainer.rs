@@ -219,7 +219,10 @@ impl Trainer {
             )
         })?;
         let state = RmsState { density: ck.opt_density, sh: ck.opt_sh };
-        Ok(Self::assemble(dataset, config, ck.grid, state, ck.meta.step, ck.meta.train_seconds, backend_device))
+        let mut t =
+            Self::assemble(dataset, config, ck.grid, state, ck.meta.step, ck.meta.train_seconds, backend_device);
+        t.far_optimiser.mean_square = ck.opt_far;
+        Ok(t)
     }
 
     fn assemble(
@@ -568,8 +571,11 @@ impl Trainer {
     /// between threads), so the write can run on another thread beside
     /// renders of the field.
     pub fn checkpoint_writer(&self, dataset: &Dataset) -> impl FnOnce(&Path) -> Result<()> + Send + '_ {
-        let (meta, grid, state) = (self.meta(dataset), &self.grid, &self.state);
-        move |out| checkpoint::save(&out.join(checkpoint::CHECKPOINT_FILE), &meta, grid, &state.density, &state.sh)
+        let (meta, grid, state, far) = (self.meta(dataset), &self.grid, &self.state, &self.far_optimiser);
+        move |out| {
+            let file = out.join(checkpoint::CHECKPOINT_FILE);
+            checkpoint::save(&file, &meta, grid, &state.density, &state.sh, &far.mean_square)
+        }
     }
 }
 

@@ -700,7 +700,7 @@ fn save_outputs(
     let grid = &st.step.field.grid;
     let (rows, device) = (grid.num_rows(), grid.device());
     let zeros = (Tensor::zeros([rows, 1], &device), Tensor::zeros([rows, 3], &device));
-    checkpoint::save(&out.join(checkpoint::CHECKPOINT_FILE), &meta, grid, &zeros.0, &zeros.1)?;
+    checkpoint::save(&out.join(checkpoint::CHECKPOINT_FILE), &meta, grid, &zeros.0, &zeros.1, &[])?;
     for r in 0..st.step.num_references() {
         st.step.render_reference(r).save_png(&out.join(format!("reference_{r}.png")))?;
     }

@@ -648,7 +648,7 @@ fn write_tiny_checkpoint(file: &Path) -> Result<()> {
         train_seconds: 1.0,
     };
     let zeros = |cols: usize| crate::util::tensor::floats(vec![0.0; 4 * cols], [4, cols], &device);
-    checkpoint::save(file, &meta, &grid, &zeros(1), &zeros(12))
+    checkpoint::save(file, &meta, &grid, &zeros(1), &zeros(12), &[0.01; 24])
 }
 
 fn tiny_registration() -> RegistrationFile {
