@@ -4,7 +4,8 @@
 
 Checks the metadata (format, version, the run's metadata as JSON), that the
 arrays agree with it (rows, SH width from the SH degree, coordinates inside
-the lattice) and are finite; prints what a script would use. Exits 1 on a failure.
+the lattice) and are finite, and the far background's map, when there is one
+(`far`, [height, width, 3], colours in [0, 1]); prints what a script would use. Exits 1 on a failure.
 """
 import json
 import sys
@@ -37,10 +38,18 @@ def check(path):
     for name in ("opt_density", "opt_sh"):
         if t[name].shape[0] not in (0, rows):
             problems.append(f"{name} has {t[name].shape[0]} rows")
+    far = ""
+    if "far" in t:
+        f = t["far"]
+        if f.dtype != np.float32 or f.ndim != 3 or f.shape[2] != 3 or not np.isfinite(f).all():
+            problems.append(f"far background {f.dtype} {f.shape}")
+        elif f.min() < 0 or f.max() > 1:
+            problems.append(f"far background colours {f.min():.3g}..{f.max():.3g} outside [0, 1]")
+        far = f", far background {f.shape[1]}x{f.shape[0]} texels, colours {f.min():.3g}..{f.max():.3g}"
     occupied = np.unravel_index(coords.astype(np.int64), res)
     print(f"{path}: step {meta['step']}, {rows} rows of {np.prod(res)} lattice points {res}, SH degree "
           f"{meta['sh_degree']}, densities {density.min():.3g}..{density.max():.3g}, "
-          f"occupied x {occupied[0].min()}..{occupied[0].max()}")
+          f"occupied x {occupied[0].min()}..{occupied[0].max()}{far}")
     if problems:
         sys.exit(f"error: {path}: " + "; ".join(problems))
 

@@ -61,7 +61,7 @@ rm -rf target/far-twin
 "$BIN" train --data target/far-twin/scene --out target/far-twin/photo --steps 300 --config configs/far_background.toml >/dev/null
 bash scripts/check_view.sh "$BIN" target/example-orbit/stylized target/example-orbit/photo target/far-twin/photo
 echo "== checkpoints read without refnpr (Python's safetensors and numpy)"
-python3 scripts/check_checkpoint.py target/example-orbit/photo/checkpoint.bin target/example-orbit/stylized/checkpoint.bin
+python3 scripts/check_checkpoint.py target/example-orbit/photo/checkpoint.bin target/example-orbit/stylized/checkpoint.bin target/far-twin/photo/checkpoint.bin
 
 echo "== docs: the library's rustdoc, warnings (broken links included) denied"
 RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --lib --quiet
