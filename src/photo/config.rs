@@ -66,7 +66,7 @@ impl Default for GridConfig {
             init_density: 0.1,
             prune_threshold: 1.0,
             far_background: FarBackground::Auto,
-            far_resolution: [128, 64],
+            far_resolution: [512, 256],
         }
     }
 }
