@@ -81,7 +81,8 @@ enum Command {
         #[arg(long, default_value_t = 96)]
         size: u32,
         /// Surround the scene with a textured far environment (a 360° capture of an object in a room)
-        /// instead of an empty background.
+        /// instead of an empty background; fit it with a far background: `refnpr train --config
+        /// configs/far_background.toml` (`[grid] far_background = "on"`).
         #[arg(long)]
         environment: bool,
     },
