@@ -62,6 +62,28 @@ impl Environment {
         out
     }
 
+    /// The direction through the centre of texel `(column, row)`.
+    fn texel_direction(&self, column: usize, row: usize) -> Vec3 {
+        let azimuth = (column as f32 + 0.5) / self.width as f32 * TAU - PI;
+        let polar = (row as f32 + 0.5) / self.height as f32 * PI;
+        Vec3::new(polar.sin() * azimuth.cos(), polar.sin() * azimuth.sin(), polar.cos())
+    }
+
+    /// This map resampled to `width` x `height` texels (each new texel the
+    /// bilinear colour at its centre): a fit's coarse map carried to a
+    /// finer one, whose texels no ray has reached yet keep the coarse colour.
+    pub fn resampled(&self, width: usize, height: usize) -> Self {
+        let mut out = Self::uniform(width, height, [0.0; 3]);
+        for row in 0..height {
+            for column in 0..width {
+                let colour = self.colour(out.texel_direction(column, row));
+                let at = (row * width + column) * 3;
+                out.rgb[at..at + 3].copy_from_slice(&colour);
+            }
+        }
+        out
+    }
+
     /// Hands each texel `colour(dir)` reads, with its bilinear weight, to `visit`.
     pub fn splat(&self, dir: Vec3, mut visit: impl FnMut(usize, f32)) {
         let taps = self.taps(dir);
@@ -135,6 +157,25 @@ mod tests {
         let across = |s: f32| env.colour(Vec3::new(-1.0, s * 1e-5, 0.2));
         for (a, b) in across(1.0).iter().zip(across(-1.0)) {
             assert!((a - b).abs() < 1e-3, "{:?} vs {:?}", across(1.0), across(-1.0));
+        }
+    }
+
+    #[test]
+    fn a_resampled_map_keeps_its_colours() {
+        let env = ramp(8, 4);
+        // The same size: every texel reads itself back.
+        let same = env.resampled(8, 4);
+        for (a, b) in same.rgb.iter().zip(&env.rgb) {
+            assert!((a - b).abs() < 1e-5, "{a} vs {b}");
+        }
+        // Twice as fine: the colour in any direction moves less than one coarse texel's step.
+        let fine = env.resampled(16, 8);
+        let step =
+            env.rgb.chunks(3).zip(env.rgb.chunks(3).skip(1)).map(|(a, b)| (a[0] - b[0]).abs()).fold(0.0, f32::max);
+        for d in [Vec3::new(0.3, 0.2, 0.5), Vec3::new(-0.7, 0.1, -0.2), Vec3::new(0.1, -0.9, 0.05)] {
+            let (a, b) = (env.colour(d), fine.colour(d));
+            assert!((a[0] - b[0]).abs() <= step, "{d}: {a:?} vs {b:?}");
+            assert!((a[2] - b[2]).abs() < 1e-5, "{d}: a constant channel stays");
         }
     }
 

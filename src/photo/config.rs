@@ -32,7 +32,9 @@ pub struct GridConfig {
     /// read from COLMAP or `transforms.json`, where a room or landscape
     /// lies beyond the box; the research layouts have a constant one.
     pub far_background: FarBackground,
-    /// The far map's size, `[width, height]` texels (azimuth, polar angle).
+    /// The far map's size, `[width, height]` texels (azimuth, polar angle),
+    /// after the last upsampling; it starts halved once per upsampling step
+    /// and doubles with the grid (`far_resolution_at`).
     pub far_resolution: [usize; 2],
 }
 
@@ -47,6 +49,14 @@ pub enum FarBackground {
 }
 
 impl GridConfig {
+    /// The far map's size after `upsamplings` of the grid's upsampling
+    /// steps: halved once per step still to come, so that the texels no
+    /// ray has reached at the finer size keep the coarse map's colours.
+    pub fn far_resolution_at(&self, upsamplings: usize) -> [usize; 2] {
+        let to_come = self.upsample_steps.len().saturating_sub(upsamplings).min(16);
+        self.far_resolution.map(|r| (r >> to_come).max(1))
+    }
+
     /// Whether a fit of a dataset of this kind (`ndc`: forward-facing)
     /// learns a far background. Forward-facing captures never do: NDC
     /// already reaches to infinity.

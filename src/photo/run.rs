@@ -200,7 +200,17 @@ fn start(
             }
             Ok(t)
         }
-        None => Trainer::new(dataset, config, &device),
+        None => {
+            let t = Trainer::new(dataset, config, &device)?;
+            if t.grid.far.is_some() {
+                let [w, h] = t.config.grid.far_resolution;
+                progress.info(format!(
+                    "far background: learned behind the box, {w}x{h} texels (grid.far_background = \"{}\")",
+                    serde_json::to_value(t.config.grid.far_background)?.as_str().unwrap_or_default()
+                ));
+            }
+            Ok(t)
+        }
     }
 }
 

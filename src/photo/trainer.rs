@@ -199,7 +199,7 @@ impl Trainer {
         let geo = GridGeometry::new(config.grid.initial_res, dataset.bbox_min, dataset.bbox_max);
         let mut grid = RadianceGrid::new_dense(geo, config.grid.sh_degree, config.grid.init_density, backend_device)?;
         if config.grid.learns_far_background(dataset.kind, dataset.ndc.is_some()) {
-            grid.far = Some(initial_far(dataset, config.grid.far_resolution));
+            grid.far = Some(initial_far(dataset, config.grid.far_resolution_at(0)));
         } else if config.grid.far_background == FarBackground::On {
             bail!(
                 "grid.far_background = \"on\" needs a capture around the scene: a forward-facing (NDC) one reaches to infinity already"
@@ -296,6 +296,11 @@ impl Trainer {
             self.grid.prune(g.prune_threshold);
             self.grid.upsample(res, &self.compute)?;
             self.state = RmsState::zeros(&self.grid);
+            if let Some(far) = &mut self.grid.far {
+                let [width, height] = g.far_resolution_at(i + 1);
+                *far = far.resampled(width, height);
+                self.far_optimiser = FarOptimiser::default();
+            }
             self.occupancy = None;
             return Ok(true);
         }
