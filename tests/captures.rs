@@ -394,3 +394,40 @@ fn training_with_refined_poses_keeps_exact_poses_and_runs_on_the_refined_capture
     assert_eq!(dataset.root, out.join(REFINED_SCENE), "the run reads the refined capture");
     assert_eq!(dataset.train.len() + dataset.test.len(), capture.train.len() + capture.test.len());
 }
+
+/// `grid.far_background = "auto"` learns a far background for a capture
+/// around the scene whose photos show a textured environment at their
+/// borders, not for one on a plain backdrop nor for the research layouts;
+/// `"off"` never does, and `"on"` refuses a forward-facing capture.
+#[test]
+fn auto_learns_a_far_background_only_behind_a_textured_capture() {
+    use refnpr::photo::config::{FarBackground, GridConfig};
+    use refnpr::photo::trainer::far_decision;
+    let t = TempDir::new("far-decision");
+    let capture = |environment: bool| {
+        let scene = t.path().join(format!("scene-{environment}"));
+        let opts = procedural::SceneOptions { seed: 3, size: 32, num_train: 6, num_val: 0, num_test: 2, environment };
+        procedural::write_scene(&scene, &opts).unwrap();
+        let ds = data::load(&scene, &LoadOptions::default()).unwrap();
+        let dir = t.path().join(format!("capture-{environment}"));
+        std::fs::create_dir_all(&dir).unwrap();
+        as_transforms(&ds, &dir);
+        (ds, data::load(&dir, &LoadOptions::default()).unwrap())
+    };
+    let grid = |far_background| GridConfig { far_background, ..GridConfig::default() };
+    let (auto, off, on) = (grid(FarBackground::Auto), grid(FarBackground::Off), grid(FarBackground::On));
+    let ((plain_blender, plain), (textured_blender, textured)) = (capture(false), capture(true));
+    assert_eq!(textured.kind, DatasetKind::Transforms);
+    let (learns, why) = far_decision(&textured, &auto).unwrap();
+    assert!(learns, "{why}");
+    let (learns, why) = far_decision(&plain, &auto).unwrap();
+    assert!(!learns && why.contains("plain colour"), "{why}");
+    assert!(!far_decision(&textured_blender, &auto).unwrap().0, "a Blender layout keeps its constant background");
+    assert!(!far_decision(&textured, &off).unwrap().0);
+    assert!(far_decision(&plain_blender, &on).unwrap().0);
+    let mut forward = textured.clone();
+    forward.ndc = Some(refnpr::scene::camera::NdcParams { width: 32.0, height: 32.0, focal: 30.0, near: 1.0 });
+    let e = format!("{:#}", far_decision(&forward, &on).unwrap_err());
+    assert!(e.contains("forward-facing"), "{e}");
+    assert!(!far_decision(&forward, &auto).unwrap().0);
+}

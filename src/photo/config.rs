@@ -29,8 +29,10 @@ pub struct GridConfig {
     pub prune_threshold: f32,
     /// Whether the field learns a far background behind the box
     /// (`field::environment`): `auto` does for captures around the scene
-    /// read from COLMAP or `transforms.json`, where a room or landscape
-    /// lies beyond the box; the research layouts have a constant one.
+    /// read from COLMAP or `transforms.json` whose photos' borders are not
+    /// one plain colour (a room or landscape lies beyond the box;
+    /// `photo::trainer::far_decision`); the research layouts have a
+    /// constant one.
     pub far_background: FarBackground,
     /// The far map's size, `[width, height]` texels (azimuth, polar angle),
     /// after the last upsampling; it starts halved once per upsampling step
@@ -55,14 +57,6 @@ impl GridConfig {
     pub fn far_resolution_at(&self, upsamplings: usize) -> [usize; 2] {
         let to_come = self.upsample_steps.len().saturating_sub(upsamplings).min(16);
         self.far_resolution.map(|r| (r >> to_come).max(1))
-    }
-
-    /// Whether a fit of a dataset of this kind (`ndc`: forward-facing)
-    /// learns a far background. Forward-facing captures never do: NDC
-    /// already reaches to infinity.
-    pub fn learns_far_background(&self, kind: DatasetKind, ndc: bool) -> bool {
-        let around = matches!(kind, DatasetKind::Colmap | DatasetKind::Transforms);
-        !ndc && (self.far_background == FarBackground::On || (self.far_background == FarBackground::Auto && around))
     }
 }
 

@@ -13,7 +13,7 @@ use crate::field::grid::sh_bytes;
 use crate::photo::config::TrainConfig;
 use crate::photo::evaluate::evaluate;
 use crate::photo::pose_refine::{self, RefineSettings, Refinement};
-use crate::photo::trainer::Trainer;
+use crate::photo::trainer::{Trainer, far_decision};
 use crate::scene::data::{Dataset, write_colmap};
 use crate::util::backend::{BackendKind, max_buffer_bytes};
 use crate::util::costs::Work;
@@ -201,15 +201,9 @@ fn start(
             Ok(t)
         }
         None => {
-            let t = Trainer::new(dataset, config, &device)?;
-            if t.grid.far.is_some() {
-                let [w, h] = t.config.grid.far_resolution;
-                progress.info(format!(
-                    "far background: learned behind the box, {w}x{h} texels (grid.far_background = \"{}\")",
-                    serde_json::to_value(t.config.grid.far_background)?.as_str().unwrap_or_default()
-                ));
-            }
-            Ok(t)
+            let (_, why) = far_decision(dataset, &config.grid)?;
+            progress.info(format!("far background: {why}"));
+            Trainer::new(dataset, config, &device)
         }
     }
 }
