@@ -68,7 +68,7 @@ RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --lib --quiet
 echo "== doc examples (compiled; run unless marked no_run)"
 REFNPR_BACKEND=flex cargo test --doc
 
-STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input --skip robustness --skip a_killed_stylization)
+STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input --skip robustness --skip a_killed_stylization --skip a_far_background)
 
 echo "== ndarray: renderer, grid, VGG16, stylization units, metrics"
 REFNPR_BACKEND=ndarray cargo test --test renderer --test vgg --test evaluation --test notebook --lib
