@@ -15,9 +15,6 @@
 //! background is consistent across views by construction.
 
 use crate::field::environment::Environment;
-use crate::field::frozen::FrozenSamples;
-use crate::field::grid::RadianceGrid;
-use crate::field::march::{MarchParams, Marcher};
 use crate::reference::registration::ReferencePixels;
 use crate::stylize::colour_map::ColourMap;
 use crate::stylize::config::ColourMapConfig;
@@ -34,33 +31,30 @@ const PAINT_CONFIDENCE: f32 = 1.0;
 /// No colour of a far map is "the background" the colour map skips.
 const NO_BACKGROUND: [f32; 3] = [-1.0; 3];
 
-/// The grid's far map stylized by the references (`None` when the grid
-/// has none). `march` is the photoreal run's march, whose transmittance
-/// decides which reference pixels see the far background.
+/// The photoreal far map `photo` stylized by the references. `left` is
+/// the transmittance the field leaves each reference pixel's ray (every
+/// reference's pixels one after another, as the stylization's sample
+/// lists marched them): it decides which pixels see the far background.
 pub fn stylized_far(
-    grid: &RadianceGrid,
+    photo: &Environment,
     references: &[ReferencePixels],
-    march: &MarchParams,
+    left: &[f32],
     cfg: &ColourMapConfig,
-) -> Option<Environment> {
-    let photo = grid.far.as_ref()?;
-    let marcher = Marcher::new(grid);
+) -> Environment {
     let (mut painted, mut seen) = (vec![0.0f32; photo.rgb.len()], vec![0.0f32; photo.rgb.len() / 3]);
     let (mut photo_side, mut painted_side) = (Vec::new(), Vec::new());
-    for reference in references {
-        let rays = reference.camera.rays(None);
-        let left = FrozenSamples::march(&marcher, &rays, march, 0.0).final_transmittance;
-        for ((ray, colour), t) in rays.iter().zip(&reference.colours).zip(left) {
-            if t < SEES_FAR {
-                continue;
-            }
-            photo.splat(ray.view_dir, |texel, w| {
-                seen[texel] += w;
-                (0..3).for_each(|c| painted[texel * 3 + c] += w * colour[c]);
-            });
-            photo_side.extend(photo.colour(ray.view_dir));
-            painted_side.extend(colour);
+    let rays = references.iter().flat_map(|r| r.camera.rays(None).into_iter().zip(&r.colours));
+    assert_eq!(left.len(), references.iter().map(|r| r.colours.len()).sum::<usize>(), "one transmittance per pixel");
+    for ((ray, colour), &t) in rays.zip(left) {
+        if t < SEES_FAR {
+            continue;
         }
+        photo.splat(ray.view_dir, |texel, w| {
+            seen[texel] += w;
+            (0..3).for_each(|c| painted[texel * 3 + c] += w * colour[c]);
+        });
+        photo_side.extend(photo.colour(ray.view_dir));
+        painted_side.extend(colour);
     }
     let n = photo_side.len() / 3;
     let (photo_img, painted_img) = (Image::new(n, 1, photo_side), Image::new(n, 1, painted_side));
@@ -79,42 +73,33 @@ pub fn stylized_far(
             })
         })
         .collect();
-    Some(Environment { width: photo.width, height: photo.height, rgb })
+    Environment { width: photo.width, height: photo.height, rgb }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::field::grid::GridGeometry;
     use crate::scene::camera::{Camera, Intrinsics, look_at};
     use glam::Vec3;
-
-    /// An empty box (every ray sees the far map) whose far map is one photo colour.
-    fn empty_grid(photo: [f32; 3]) -> RadianceGrid {
-        let geo = GridGeometry::new([8; 3], Vec3::splat(-1.0), Vec3::splat(1.0));
-        let mut grid = RadianceGrid::from_rows(geo, 0, vec![], vec![], vec![], &crate::test_support::device());
-        grid.far = Some(Environment::uniform(32, 16, photo));
-        grid
-    }
 
     fn close(a: [f32; 3], b: [f32; 3], tol: f32) -> bool {
         a.iter().zip(b).all(|(x, y)| (x - y).abs() <= tol)
     }
 
-    /// A reference looking along +x paints its left half one colour and its
-    /// right half another: the far map takes each where the reference saw
-    /// it, and the photo colour's mean repaint everywhere it did not.
+    /// A reference looking along +x through empty space paints its left
+    /// half one colour and its right half another: the far map takes each
+    /// where the reference saw it, and the photo colour's mean repaint
+    /// everywhere it did not; pixels the field covers paint nothing.
     #[test]
     fn seen_directions_take_the_paint_and_unseen_ones_the_references_recolouring() {
-        let photo = [0.7, 0.6, 0.2];
+        let photo = Environment::uniform(32, 16, [0.7, 0.6, 0.2]);
         let (left, right) = ([0.1, 0.8, 0.2], [0.1, 0.4, 0.9]);
-        let grid = empty_grid(photo);
         let (w, h) = (40u32, 30u32);
         let camera = Camera::new(Intrinsics::from_fov_x(w, h, 1.2), look_at(Vec3::ZERO, Vec3::X, Vec3::Z));
         let colours = (0..h).flat_map(|_| (0..w).map(move |x| if x < w / 2 { left } else { right })).collect();
         let reference = ReferencePixels { camera, colours, hits: vec![false; (w * h) as usize] };
         let cfg = ColourMapConfig::default();
-        let far = stylized_far(&grid, &[reference], &MarchParams::default(), &cfg).expect("the grid has a far map");
+        let far = stylized_far(&photo, std::slice::from_ref(&reference), &vec![1.0; (w * h) as usize], &cfg);
         // Directions through the middle of each half of the reference.
         let through = |x: f32| camera.ray(x, h as f32 / 2.0).view_dir;
         assert!(close(far.colour(through(w as f32 * 0.2)), left, 0.05), "{:?}", far.colour(through(8.0)));
@@ -125,9 +110,8 @@ mod tests {
         for d in [-Vec3::X, Vec3::new(-0.3, 0.5, 0.8)] {
             assert!(close(far.colour(d), mean, 0.1), "{d}: {:?} vs {mean:?}", far.colour(d));
         }
-        // A field without a far map has none to stylize.
-        let mut plain = empty_grid(photo);
-        plain.far = None;
-        assert!(stylized_far(&plain, &[], &MarchParams::default(), &cfg).is_none());
+        // A reference whose every ray the field stops leaves the map as it was.
+        let covered = stylized_far(&photo, &[reference], &vec![0.0; (w * h) as usize], &cfg);
+        assert!(close(covered.colour(through(8.0)), [0.7, 0.6, 0.2], 1e-5), "{:?}", covered.colour(through(8.0)));
     }
 }

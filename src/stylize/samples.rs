@@ -134,6 +134,12 @@ impl<'a> SampleCache<'a> {
         self.reference_first_ray.len() - 1
     }
 
+    /// The transmittance each reference pixel's ray leaves, every
+    /// reference's pixels one after another (the lists' own march).
+    pub fn reference_transmittance(&self) -> &[f32] {
+        &self.reference_lists.final_transmittance
+    }
+
     /// The sample lists of reference `r`.
     pub fn reference_samples(&self, r: usize) -> FrozenSamples {
         let first = self.reference_first_ray[r];

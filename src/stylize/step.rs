@@ -217,8 +217,10 @@ impl<'a> StyleStep<'a> {
     /// included): the far map stylized by the references
     /// (`stylize::far`), and the sample lists made to see it.
     pub fn stylize_far(&mut self, progress: &dyn Progress) {
-        let references = &self.samples.registration.references;
-        if let Some(far) = stylized_far(&self.field.grid, references, &self.samples.march(), &self.cfg.colour_map) {
+        let (references, left) = (&self.samples.registration.references, self.samples.reference_transmittance());
+        if let Some(far) =
+            self.field.grid.far.as_ref().map(|photo| stylized_far(photo, references, left, &self.cfg.colour_map))
+        {
             self.field.grid.far = Some(far);
             self.samples.refresh_far(&self.field.grid, &self.device);
             progress.event(Event::Detail("far background painted and recoloured from the references".into()));
