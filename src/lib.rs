@@ -3,7 +3,7 @@
 //!
 //! | module | stage |
 //! | --- | --- |
-//! | `util` | backend choice, tensor helpers, the one `Image` type and its files, the image metrics (PSNR, SSIM, speckle), file writes, progress events, per-step RNG, memory readings, phase costs |
+//! | `util` | backend choice, tensor helpers, the GPU row kernels (CubeCL), the one `Image` type and its files, the image metrics (PSNR, SSIM, speckle), file writes, progress events, per-step RNG, memory readings, phase costs |
 //! | `scene` | cameras, rays, NDC, camera paths, the SH basis; dataset loaders (Blender, LLFF, NSVF, COLMAP models, `transforms.json`, the procedural scene) |
 //! | `vgg` | the ONNX-imported VGG16, block descriptors and nearest neighbours |
 //! | `field` | the radiance grid, ray marching (plain Rust), compositing (Burn graph), the view renderer (kernel chosen once), camera-path renders, the frozen-density colour renderer, what the optimisers share (RMSprop, TV, row subsets), checkpoints |

@@ -320,10 +320,9 @@ fn a_grid_too_large_is_refused_before_allocating() {
 }
 
 /// A training step moves what its ray batch needs and never the grid
-/// (`util::transfer` counts the library's own uploads and reads, so the
-/// figures are the same on every backend): uploads are the batch's sample
-/// lists, its target colours, the step's row indices and TV neighbour lists,
-/// nothing more; reads are the loss and the step's new densities (the host
+/// (`util::transfer` counts the library's own uploads and reads): uploads
+/// are the batch's sample lists, its target colours, the step's row indices
+/// and TV neighbour lists, on a GPU the gathers' transposes, nothing more; reads are the loss and the step's new densities (the host
 /// mirror the march needs), nothing more. This is the Burn graph's step, a
 /// GPU's (on the CPU backends `ray_kernel = "auto"` runs `host_fit`, which
 /// reads the step's SH rows instead: host memory either way).
@@ -344,8 +343,16 @@ fn a_training_step_moves_its_batch_not_the_grid() {
     // Per sample: 8 corner rows, 8 + 8 corner weights, the SH basis, delta and t;
     // per ray: the padded sample map and the target colour; per row: its index
     // and at most three TV neighbour indices; the background colour.
-    let bound = st.samples * (26 + nb) * 4 + rays * (st.max_samples_per_ray * 4 + 12) + st.rows * 16 + 12;
-    assert!(moved.uploads <= 16, "{moved}");
+    let mut bound = st.samples * (26 + nb) * 4 + rays * (st.max_samples_per_ray * 4 + 12) + st.rows * 16 + 12;
+    let mut most_uploads = 16;
+    if !refnpr::util::tensor::is_host_memory(&common::device()) {
+        // On a GPU the two gathers' transposes (`util::gather_op`): per
+        // sample 8 corner entries, one padded entry and one offset; per row
+        // one offset, and one more each.
+        bound += (st.samples * 10 + st.rows + 2) * 4;
+        most_uploads += 4;
+    }
+    assert!(moved.uploads <= most_uploads, "{moved}");
     assert!(moved.upload_bytes as usize <= bound, "{moved}: more than the batch needs ({bound} B)");
     assert_eq!(moved.reads, 2, "{moved}");
     assert_eq!(moved.read_bytes as usize, 4 + 4 * st.rows, "{moved}");

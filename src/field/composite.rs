@@ -4,11 +4,12 @@
 //! `[rays, K]` layout; weights and sums - so autodiff reaches the grid rows.
 //! Views are rendered by `view::ViewRenderer`, with this graph on a GPU.
 
-use burn::tensor::{Device, Int, Tensor, activation::relu};
+use burn::tensor::{Device, Tensor, activation::relu};
 
 use crate::field::march::SampleBatch;
 use crate::util::backend::max_buffer_bytes;
-use crate::util::tensor::{floats, indices, select_rows};
+use crate::util::gather_op::{RowIndex, gather_rows};
+use crate::util::tensor::{floats, indices};
 
 /// The most samples one [`composite`] call may take on `device` with
 /// `columns` colour coefficients a row: its largest tensors, the 8 corner
@@ -30,14 +31,16 @@ pub struct BatchTensors {
     pub num_samples: usize,
     /// Samples per ray in the padded [rays, K] layout.
     pub k: usize,
-    pub corners: Tensor<1, Int>,
+    /// Each sample's 8 corner rows, `[s * 8]` (with their transpose when
+    /// built for gradients on a GPU: `util::gather_op`).
+    pub corners: RowIndex,
     pub corner_weights: Tensor<2>,
     pub colour_weights: Tensor<2>,
     pub basis: Tensor<3>,
     pub delta: Tensor<1>,
     pub t: Tensor<1>,
     /// For each padded slot, the packed sample index, or `num_samples` for padding.
-    pub pad_map: Tensor<1, Int>,
+    pub pad_map: RowIndex,
     /// The far background per ray, `[rays, 3]` (`SampleBatch::far`), or
     /// `None` for the constant background. A fit makes it a leaf of its
     /// graph to learn the far map.
@@ -48,6 +51,17 @@ impl BatchTensors {
     /// Uploads a batch. `remap` replaces each corner's grid row (e.g. by a
     /// local row of a training step's parameter subset).
     pub fn new(b: &SampleBatch, remap: Option<&dyn Fn(i32) -> i32>, device: &Device) -> Self {
+        Self::upload(b, remap, false, device)
+    }
+
+    /// As [`new`](Self::new), for a graph that is differentiated: on a GPU
+    /// the gathers' index transposes are uploaded too, so that their
+    /// backward runs in parallel (`util::gather_op`).
+    pub fn for_gradients(b: &SampleBatch, remap: Option<&dyn Fn(i32) -> i32>, device: &Device) -> Self {
+        Self::upload(b, remap, true, device)
+    }
+
+    fn upload(b: &SampleBatch, remap: Option<&dyn Fn(i32) -> i32>, gradients: bool, device: &Device) -> Self {
         let s = b.num_samples();
         let nb = b.basis.len().checked_div(s).unwrap_or(1);
         let k = b.max_samples_per_ray().max(1);
@@ -62,17 +76,25 @@ impl BatchTensors {
             Some(f) => b.corner_rows.iter().map(|&r| f(r)).collect(),
             None => b.corner_rows.clone(),
         };
+        let index = |idx: Vec<i32>, rows: usize| match gradients {
+            true => RowIndex::new(idx, rows, device),
+            false => RowIndex::plain(indices(idx, device)),
+        };
+        // The corner rows' table is the grid (or the step's rows): rows past
+        // the largest one read get no gradient from this batch anyway.
+        let corner_rows = corners.iter().copied().max().map_or(0, |m| m as usize + 1);
         Self {
             num_rays: b.num_rays,
             num_samples: s,
             k,
-            corners: indices(corners, device),
+            corners: index(corners, corner_rows),
             corner_weights: floats(b.corner_weights.clone(), [s * 8, 1], device),
             colour_weights: floats(b.colour_weights.clone(), [s * 8, 1], device),
             basis: floats(b.basis.clone(), [s, 1, nb], device),
             delta: floats(b.delta.clone(), [s], device),
             t: floats(b.t.clone(), [s], device),
-            pad_map: indices(pad, device),
+            // The padding slots read row `s`, a constant zero: no gradient.
+            pad_map: index(pad, s),
             far: (!b.far.is_empty()).then(|| floats(b.far.concat(), [b.num_rays, 3], device)),
         }
     }
@@ -91,10 +113,10 @@ pub struct Rendered {
 /// Trilinear interpolation at `s` samples: gathers the 8 corner rows of each
 /// (`corners`, `[s * 8]`), weights them (`weights`, `[s * 8, 1]`) and sums,
 /// giving `[s, columns]`.
-pub fn interpolate_corners(rows: Tensor<2>, corners: &Tensor<1, Int>, weights: Tensor<2>) -> Tensor<2> {
+pub fn interpolate_corners(rows: Tensor<2>, corners: &RowIndex, weights: Tensor<2>) -> Tensor<2> {
     let columns = rows.dims()[1];
-    let s = corners.dims()[0] / 8;
-    (select_rows(rows, corners.clone()) * weights).reshape([s, 8, columns]).sum_dim(1).reshape([s, columns])
+    let s = corners.idx.dims()[0] / 8;
+    (gather_rows(rows, corners) * weights).reshape([s, 8, columns]).sum_dim(1).reshape([s, columns])
 }
 
 /// Moves packed per-sample values into the padded [rays, K] layout (zero padding).
@@ -102,7 +124,14 @@ fn to_padded<const D: usize>(packed: Tensor<D>, bt: &BatchTensors, tail: [usize;
     let mut zshape = tail;
     zshape[0] = 1;
     let zero = Tensor::zeros(zshape, &packed.device());
-    select_rows(Tensor::cat(vec![packed, zero], 0), bt.pad_map.clone())
+    let table = Tensor::cat(vec![packed, zero], 0);
+    let rows = table.dims()[0];
+    // Gathered as rows of one column or more, then given the caller's rank.
+    let columns = table.shape().num_elements() / rows.max(1);
+    let padded = gather_rows(table.reshape([rows, columns]), &bt.pad_map);
+    let mut out_shape = tail;
+    out_shape[0] = bt.pad_map.idx.dims()[0];
+    padded.reshape(out_shape)
 }
 
 /// Equations 1-2 on the packed samples: density and colour by trilinear

@@ -16,6 +16,7 @@ use crate::field::march::{ColourCorners, MarchParams, Marcher, colour_weights};
 use crate::scene::camera::Ray;
 use crate::scene::sh;
 use crate::util::budget_ranges;
+use crate::util::gather_op::{self, RowIndex, sum_runs};
 use crate::util::tensor::{assign_rows, cumsum_rows, floats, indices, select_rows, to_vec};
 use rayon::prelude::*;
 
@@ -343,6 +344,7 @@ impl FrozenSamples {
             colour_weights: floats(weights, [s * 8, 1], device),
             weight: floats(self.weight.clone(), [s, 1], device),
             ray_of_sample: indices(ray_of_sample, device),
+            ray_starts: self.ray_offsets.iter().map(|&o| o as i32).collect(),
             final_transmittance: floats(self.final_transmittance.clone(), [self.num_rays, 1], device),
             far: far_tensor(&self.far, device),
         }
@@ -430,12 +432,16 @@ impl DeviceSamples {
                 colour_weights: Tensor::zeros([0, 1], &device),
                 weight: Tensor::zeros([0, 1], &device),
                 ray_of_sample: Tensor::zeros([0], &device),
+                ray_starts: vec![0; rays.len() + 1],
                 final_transmittance,
                 far,
             };
         }
         // Marks summed in f32: exact below 2^24 samples a batch (a chunk holds far fewer).
-        let ray_of_sample: Tensor<1, Int> = if marks.is_empty() {
+        let ray_starts: Vec<i32> = starts.iter().copied().chain([total as i32]).collect();
+        let ray_of_sample: Tensor<1, Int> = if let Some(runs) = gather_op::runs_of(&ray_starts, total, &device) {
+            runs
+        } else if marks.is_empty() {
             Tensor::zeros([total], &device)
         } else {
             let ones: Tensor<2> = Tensor::ones([marks.len(), 1], &device);
@@ -444,7 +450,7 @@ impl DeviceSamples {
             cumsum_rows(marked).reshape([total]).int()
         };
         let first = select_rows(select_rows(self.first_sample.clone(), ray_ids), ray_of_sample.clone());
-        let start = select_rows(indices(starts, &device), ray_of_sample.clone());
+        let start = select_rows(indices(starts.clone(), &device), ray_of_sample.clone());
         let sample_ids = first + Tensor::arange(0..total as i64, &device) - start;
         FrozenTensors {
             num_rays: rays.len(),
@@ -453,6 +459,7 @@ impl DeviceSamples {
             colour_weights: select_rows(self.colour_weights.clone(), sample_ids.clone()).reshape([total * 8, 1]),
             weight: select_rows(self.weight.clone(), sample_ids),
             ray_of_sample,
+            ray_starts,
             final_transmittance,
             far,
         }
@@ -472,6 +479,9 @@ pub struct FrozenTensors {
     pub colour_weights: Tensor<2>,
     pub weight: Tensor<2>,
     pub ray_of_sample: Tensor<1, Int>,
+    /// Where each ray's samples start, and the number of samples last
+    /// (`rays + 1` host values): the rays' sums by runs (`sum_runs`).
+    pub ray_starts: Vec<i32>,
     pub final_transmittance: Tensor<2>,
     /// `[rays, 3]` far background colours, else the constant background.
     pub far: Option<Tensor<2>>,
@@ -489,11 +499,10 @@ pub fn render_colour(sh: Tensor<2>, ft: &FrozenTensors, background: [f32; 3]) ->
     if ft.num_samples == 0 {
         return background_part;
     }
-    let coeff = interpolate_corners(sh, &ft.corner_rows, ft.colour_weights.clone());
+    let coeff = interpolate_corners(sh, &RowIndex::plain(ft.corner_rows.clone()), ft.colour_weights.clone());
     let colour = relu(coeff * sh::C0 + 0.5);
     let contribution = colour * ft.weight.clone();
-    assign_rows(Tensor::zeros([ft.num_rays, 3], &device), ft.ray_of_sample.clone(), contribution, IndexingUpdateOp::Add)
-        + background_part
+    sum_runs(contribution, &ft.ray_of_sample, &ft.ray_starts) + background_part
 }
 
 /// Renders all rays of `samples` in chunks of `chunk` rays without autodiff:

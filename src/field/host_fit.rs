@@ -444,7 +444,7 @@ mod graph_oracle {
         assert!(first.sh != host.sh, "a different target gives different gradients");
         assert!(host.sh == fresh.sh && host.density == fresh.density, "reused buffers change the gradient");
 
-        let bt = BatchTensors::new(&batch, Some(&local), &dev);
+        let bt = BatchTensors::for_gradients(&batch, Some(&local), &dev);
         let ld = floats(step_dens, [n, 1], &dev).autodiff().require_grad();
         let ls = floats(step_sh, [n, 3 * nb], &dev).autodiff().require_grad();
         let out = composite(ld.clone(), ls.clone(), &bt, bg);

@@ -498,7 +498,7 @@ impl Trainer {
                     &cut
                 }
             };
-            let mut bt = BatchTensors::new(run, Some(&|r: i32| subset.local(r)), plain);
+            let mut bt = BatchTensors::for_gradients(run, Some(&|r: i32| subset.local(r)), plain);
             // The far colours are a leaf too: their gradients train the far map.
             let far_leaf = bt.far.take().map(|f| f.autodiff().require_grad());
             bt.far = far_leaf.clone();

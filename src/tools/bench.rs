@@ -64,7 +64,7 @@ pub fn renderer_throughput(backend: BackendKind, res: usize, rays: usize, repeat
         let t = Instant::now();
         let b = generate_samples(&grid, batch_rays, &params);
         let subset = RowSubset::of(grid.num_rows(), &b.corner_rows);
-        let bt = BatchTensors::new(&b, Some(&|r: i32| subset.local(r)), &device);
+        let bt = BatchTensors::for_gradients(&b, Some(&|r: i32| subset.local(r)), &device);
         let idx = indices(subset.rows().to_vec(), &device);
         let ld = dens.clone().select(0, idx.clone()).autodiff().require_grad();
         let ls = shv.clone().select(0, idx).autodiff().require_grad();

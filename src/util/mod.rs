@@ -8,6 +8,7 @@ pub mod config;
 pub mod costs;
 pub(crate) mod diverged;
 pub mod files;
+pub mod gather_op;
 pub mod image;
 pub mod input;
 pub mod label;

@@ -20,9 +20,10 @@
 
 use burn::tensor::{IndexingUpdateOp, Int, Tensor};
 
+use crate::util::gather_op::write_rows;
 #[cfg(any(feature = "flex", feature = "ndarray"))]
 use crate::util::tensor::is_host_memory;
-use crate::util::tensor::{assign_rows, select_rows, to_vec};
+use crate::util::tensor::{select_rows, to_vec};
 
 #[cfg(any(feature = "flex", feature = "ndarray"))]
 mod host_op {
@@ -425,8 +426,8 @@ pub fn for_each_row_block<E>(
 
 /// Applies `update(k, a_row, b_row)` to rows `rows[k]` of `a` and `b` (two
 /// tensors of one shape; `rows_t` the same indices as a tensor): in place
-/// and in parallel on flex, by reading the rows out and assigning them back
-/// elsewhere. The optimisers' fused row step: one pass over the rows of a
+/// and in parallel on flex, by reading the rows out and writing them back
+/// elsewhere (there the rows must be distinct). The optimisers' fused row step: one pass over the rows of a
 /// parameter and its running average instead of a gather and two row-adds.
 pub fn update_row_pairs(
     a: &mut Tensor<2>,
@@ -455,12 +456,14 @@ pub fn update_row_pairs(
         update(k, ra, rb);
     }
     let values = |v: Vec<f32>| Tensor::<2>::from_data(burn::tensor::TensorData::new(v, [rows.len(), cols]), &device);
-    *a = assign_rows(ta, rows_t.clone(), values(va), IndexingUpdateOp::Assign);
-    *b = assign_rows(tb, rows_t.clone(), values(vb), IndexingUpdateOp::Assign);
+    *a = write_rows(ta, rows_t, values(va), IndexingUpdateOp::Assign);
+    *b = write_rows(tb, rows_t, values(vb), IndexingUpdateOp::Assign);
 }
 
 /// `tensor` with `values` added to its rows `rows` (`rows_t` the same
-/// indices as a tensor). In place when `tensor` is uniquely owned.
+/// indices as a tensor). In place when `tensor` is uniquely owned. On a GPU
+/// the rows must be distinct (`util::gather_op::write_rows`), as an
+/// optimiser step's are.
 pub fn add_to_rows(tensor: Tensor<2>, rows: &[i32], rows_t: &Tensor<1, Int>, values: Tensor<2>) -> Tensor<2> {
     #[cfg(any(feature = "flex", feature = "ndarray"))]
     if is_host_memory(&tensor.device()) {
@@ -469,7 +472,7 @@ pub fn add_to_rows(tensor: Tensor<2>, rows: &[i32], rows_t: &Tensor<1, Int>, val
         return Tensor::from_dispatch(out);
     }
     let _ = rows;
-    assign_rows(tensor, rows_t.clone(), values, IndexingUpdateOp::Add)
+    write_rows(tensor, rows_t, values, IndexingUpdateOp::Add)
 }
 
 #[cfg(test)]
