@@ -164,10 +164,12 @@ mod cube_op {
     use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
     use burn::backend::autodiff::grads::Gradients;
     use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+    use burn::backend::cubecl::dtype_to_storage_type as storage;
     use burn::backend::ops::FloatTensorOps;
     use burn::backend::tensor::{FloatTensor, IntTensor};
     use burn::backend::{AutodiffBackend, Backend, Shape, TensorMetadata, backend_extension};
     use burn_cubecl::cubecl;
+    use burn_cubecl::cubecl::client::Client;
     use burn_cubecl::cubecl::prelude::*;
     use burn_cubecl::cubecl::{CubeDim, calculate_cube_count_elemwise};
     use burn_cubecl::kernel::into_contiguous;
@@ -336,9 +338,8 @@ mod cube_op {
                 return out;
             }
             let client = starts.client.clone();
-            let cube_dim = CubeDim::new(&client, total);
-            let cube_count = calculate_cube_count_elemwise(&client, total, cube_dim);
-            let dtype = burn::backend::cubecl::dtype_to_storage_type(starts.dtype);
+            let (cube_count, cube_dim) = one_per_value(&client, total);
+            let dtype = storage(starts.dtype);
             runs_of_kernel::launch(
                 &client,
                 cube_count,
@@ -360,6 +361,12 @@ mod cube_op {
         }
     }
 
+    /// One unit per value: the cube count and size for `units` values.
+    fn one_per_value(client: &Client, units: usize) -> (CubeCount, CubeDim) {
+        let cube_dim = CubeDim::new(client, units);
+        (calculate_cube_count_elemwise(client, units, cube_dim), cube_dim)
+    }
+
     fn write_rows(tensor: CubeTensor, idx: CubeTensor, values: CubeTensor, add: bool) -> CubeTensor {
         let tensor = match tensor.can_mut() && tensor.is_contiguous() {
             true => tensor,
@@ -372,12 +379,8 @@ mod cube_op {
         }
         let cols = values.shape()[1];
         let client = tensor.client.clone();
-        let cube_dim = CubeDim::new(&client, units);
-        let cube_count = calculate_cube_count_elemwise(&client, units, cube_dim);
-        let dtypes = [
-            burn::backend::cubecl::dtype_to_storage_type(tensor.dtype),
-            burn::backend::cubecl::dtype_to_storage_type(idx.dtype),
-        ];
+        let (cube_count, cube_dim) = one_per_value(&client, units);
+        let dtypes = [storage(tensor.dtype), storage(idx.dtype)];
         write_rows_kernel::launch(
             &client,
             cube_count,
@@ -402,12 +405,8 @@ mod cube_op {
             return out;
         }
         let client = grad.client.clone();
-        let cube_dim = CubeDim::new(&client, units);
-        let cube_count = calculate_cube_count_elemwise(&client, units, cube_dim);
-        let dtypes = [
-            burn::backend::cubecl::dtype_to_storage_type(grad.dtype),
-            burn::backend::cubecl::dtype_to_storage_type(order.dtype),
-        ];
+        let (cube_count, cube_dim) = one_per_value(&client, units);
+        let dtypes = [storage(grad.dtype), storage(order.dtype)];
         sum_by_rows_kernel::launch(
             &client,
             cube_count,
