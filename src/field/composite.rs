@@ -81,8 +81,12 @@ impl BatchTensors {
             false => RowIndex::plain(indices(idx, device)),
         };
         // The corner rows' table is the grid (or the step's rows): rows past
-        // the largest one read get no gradient from this batch anyway.
-        let corner_rows = corners.iter().copied().max().map_or(0, |m| m as usize + 1);
+        // the largest one read get no gradient from this batch anyway. A
+        // render-only upload needs no bound.
+        let corner_rows = match gradients {
+            true => corners.iter().copied().max().map_or(0, |m| m as usize + 1),
+            false => 0,
+        };
         Self {
             num_rays: b.num_rays,
             num_samples: s,

@@ -408,10 +408,9 @@ impl DeviceSamples {
 
     /// The samples of `rays` (in that order; repeats allowed): the same
     /// tensors as `samples.subset(rays).upload(device)`, gathered on the
-    /// device. Sample `j` of the batch belongs to pick `k` when `k` picks
-    /// after the first start at or before `j`: a cumulative sum of marks
-    /// at the picks' starts (picks without samples share the next start,
-    /// so their marks count too).
+    /// device. Sample `j` of the batch belongs to the last pick whose start
+    /// is at or before `j` (picks without samples share the next start):
+    /// `gather_op::runs_of` on a GPU, a cumulative sum of marks elsewhere.
     pub fn gather(&self, rays: &[usize]) -> FrozenTensors {
         let device = self.weight.device();
         let mut starts = Vec::with_capacity(rays.len());
@@ -420,7 +419,6 @@ impl DeviceSamples {
             starts.push(total as i32);
             total += (self.ray_offsets[r + 1] - self.ray_offsets[r]) as usize;
         }
-        let marks: Vec<i32> = starts.iter().skip(1).copied().filter(|&s| (s as usize) < total).collect();
         let ray_ids = indices(rays.iter().map(|&r| r as i32).collect(), &device);
         let final_transmittance = select_rows(self.final_transmittance.clone(), ray_ids.clone());
         let far = self.far.as_ref().map(|far| select_rows(far.clone(), ray_ids.clone()));
@@ -437,20 +435,13 @@ impl DeviceSamples {
                 far,
             };
         }
-        // Marks summed in f32: exact below 2^24 samples a batch (a chunk holds far fewer).
         let ray_starts: Vec<i32> = starts.iter().copied().chain([total as i32]).collect();
-        let ray_of_sample: Tensor<1, Int> = if let Some(runs) = gather_op::runs_of(&ray_starts, total, &device) {
-            runs
-        } else if marks.is_empty() {
-            Tensor::zeros([total], &device)
-        } else {
-            let ones: Tensor<2> = Tensor::ones([marks.len(), 1], &device);
-            let marked =
-                assign_rows(Tensor::zeros([total, 1], &device), indices(marks, &device), ones, IndexingUpdateOp::Add);
-            cumsum_rows(marked).reshape([total]).int()
+        let ray_of_sample = match gather_op::runs_of(&ray_starts, total, &device) {
+            Some(runs) => runs,
+            None => ray_of_sample_by_marks(&starts, total, &device),
         };
         let first = select_rows(select_rows(self.first_sample.clone(), ray_ids), ray_of_sample.clone());
-        let start = select_rows(indices(starts.clone(), &device), ray_of_sample.clone());
+        let start = select_rows(indices(starts, &device), ray_of_sample.clone());
         let sample_ids = first + Tensor::arange(0..total as i64, &device) - start;
         FrozenTensors {
             num_rays: rays.len(),
@@ -464,6 +455,20 @@ impl DeviceSamples {
             far,
         }
     }
+}
+
+/// Each of `total` samples' pick, from the picks' `starts` (the CPU
+/// backends' way; a GPU has `gather_op::runs_of`): a cumulative sum of
+/// marks at the picks' starts, summed in f32, exact below 2^24 samples a
+/// batch (a chunk holds far fewer).
+fn ray_of_sample_by_marks(starts: &[i32], total: usize, device: &Device) -> Tensor<1, Int> {
+    let marks: Vec<i32> = starts.iter().skip(1).copied().filter(|&s| (s as usize) < total).collect();
+    if marks.is_empty() {
+        return Tensor::zeros([total], device);
+    }
+    let ones: Tensor<2> = Tensor::ones([marks.len(), 1], device);
+    let marked = assign_rows(Tensor::zeros([total, 1], device), indices(marks, device), ones, IndexingUpdateOp::Add);
+    cumsum_rows(marked).reshape([total]).int()
 }
 
 /// Far colours `[rays, 3]` on `device`, or `None` for none.

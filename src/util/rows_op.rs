@@ -427,8 +427,9 @@ pub fn for_each_row_block<E>(
 /// Applies `update(k, a_row, b_row)` to rows `rows[k]` of `a` and `b` (two
 /// tensors of one shape; `rows_t` the same indices as a tensor): in place
 /// and in parallel on flex, by reading the rows out and writing them back
-/// elsewhere (there the rows must be distinct). The optimisers' fused row step: one pass over the rows of a
-/// parameter and its running average instead of a gather and two row-adds.
+/// elsewhere (there the rows must be distinct). The optimisers' fused row
+/// step: one pass over the rows of a parameter and its running average
+/// instead of a gather and two row-adds.
 pub fn update_row_pairs(
     a: &mut Tensor<2>,
     b: &mut Tensor<2>,
