@@ -7,6 +7,7 @@
 
 pub mod checkpoint;
 pub mod composite;
+pub mod composite_op;
 pub mod environment;
 pub mod frozen;
 pub mod grid;

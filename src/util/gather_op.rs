@@ -32,7 +32,6 @@ pub struct RowIndex {
     /// `[rows + 1]`). Entries reading a row `>= rows` are left out: that
     /// row gets no gradient (the constant padding row of a packed layout),
     /// and neither do table rows beyond `rows`.
-    #[cfg_attr(not(feature = "wgpu"), allow(dead_code))]
     transpose: Option<(Tensor<1, Int>, Tensor<1, Int>)>,
 }
 
@@ -45,6 +44,11 @@ impl RowIndex {
             (indices(order, device), indices(offsets, device))
         });
         Self { idx: indices(idx, device), transpose }
+    }
+
+    /// The transpose (`order`, `offsets`; `transpose_of`), when built.
+    pub fn transpose(&self) -> Option<(&Tensor<1, Int>, &Tensor<1, Int>)> {
+        self.transpose.as_ref().map(|(order, offsets)| (order, offsets))
     }
 
     /// The index alone, with Burn's `select` backward (the CPU backends, or
