@@ -2,7 +2,8 @@
 //! graph over the packed samples of `march` - gather the 8 corner rows,
 //! weight, sum; ReLU density; SH colour; per-ray transmittance in a padded
 //! `[rays, K]` layout; weights and sums - so autodiff reaches the grid rows.
-//! Views are rendered by `view::ViewRenderer`, with this graph on a GPU.
+//! Views are rendered by `view::ViewRenderer`. On a GPU the same
+//! equations run as one kernel per ray instead (`composite_op`).
 
 use burn::tensor::{Device, Int, Tensor, activation::relu};
 

@@ -88,10 +88,11 @@ mod cube_op {
     use burn::backend::{AutodiffBackend, Backend, Shape, TensorMetadata, backend_extension};
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
-    use burn_cubecl::cubecl::{CubeDim, calculate_cube_count_elemwise};
     use burn_cubecl::kernel::into_contiguous;
     use burn_cubecl::ops::numeric::empty_device_dtype;
     use burn_cubecl::tensor::CubeTensor;
+
+    use crate::util::gather_op::one_per_value;
 
     /// The fused compositing of a packed sample batch (module docs).
     #[backend_extension(Cube, Autodiff)]
@@ -396,12 +397,6 @@ mod cube_op {
         out[pos] = grad[ray * 5 + pos % 3] * (F::new(1.0) - out_fwd[ray * 5 + 4]);
     }
 
-    /// Threads for `units` values, one each.
-    fn one_per_value(tensor: &CubeTensor, units: usize) -> (CubeCount, CubeDim) {
-        let cube_dim = CubeDim::new(&tensor.client, units);
-        (calculate_cube_count_elemwise(&tensor.client, units, cube_dim), cube_dim)
-    }
-
     fn empty_like(like: &CubeTensor, shape: Shape) -> CubeTensor {
         empty_device_dtype(like.client.clone(), like.device.clone(), shape, like.dtype)
     }
@@ -469,7 +464,7 @@ mod cube_op {
             if rays == 0 {
                 return out;
             }
-            let (cube_count, cube_dim) = one_per_value(&out, rays);
+            let (cube_count, cube_dim) = one_per_value(&out.client, rays);
             let dtypes = [storage(x.density.dtype), storage(x.corners.dtype)];
             let nb = x.num_basis();
             forward_kernel::launch(
@@ -524,7 +519,7 @@ mod cube_op {
             if rays == 0 || samples == 0 {
                 return out;
             }
-            let (cube_count, cube_dim) = one_per_value(&out, rays);
+            let (cube_count, cube_dim) = one_per_value(&out.client, rays);
             let dtypes = [storage(x.density.dtype), storage(x.corners.dtype)];
             let nb = x.num_basis();
             sample_grads_kernel::launch(
@@ -570,7 +565,7 @@ mod cube_op {
             if rows * cols == 0 {
                 return out;
             }
-            let (cube_count, cube_dim) = one_per_value(&out, rows * cols);
+            let (cube_count, cube_dim) = one_per_value(&out.client, rows * cols);
             let dtypes = [storage(sample_grads.dtype), storage(order.dtype)];
             row_grads_kernel::launch(
                 &out.client,
@@ -598,7 +593,7 @@ mod cube_op {
             if rays == 0 {
                 return out;
             }
-            let (cube_count, cube_dim) = one_per_value(&out, rays * 3);
+            let (cube_count, cube_dim) = one_per_value(&out.client, rays * 3);
             let dtype = storage(grad.dtype);
             background_grads_kernel::launch(
                 &out.client,

@@ -158,6 +158,8 @@ pub fn write_rows(tensor: Tensor<2>, idx: &Tensor<1, Int>, values: Tensor<2>, op
 
 #[cfg(feature = "wgpu")]
 pub use cube_op::GatherBackend;
+#[cfg(feature = "wgpu")]
+pub(crate) use cube_op::one_per_value;
 
 /// The operation on the cubecl backend and autodiff over it.
 #[cfg(feature = "wgpu")]
@@ -365,8 +367,9 @@ mod cube_op {
         }
     }
 
-    /// One unit per value: the cube count and size for `units` values.
-    fn one_per_value(client: &Client, units: usize) -> (CubeCount, CubeDim) {
+    /// One unit per value: the cube count and size for `units` values
+    /// (every kernel of ours launches this way, `field::composite_op`'s too).
+    pub(crate) fn one_per_value(client: &Client, units: usize) -> (CubeCount, CubeDim) {
         let cube_dim = CubeDim::new(client, units);
         (calculate_cube_count_elemwise(client, units, cube_dim), cube_dim)
     }
