@@ -22,7 +22,8 @@ use refnpr::scene::camera::{Camera, Intrinsics, look_at};
 use refnpr::scene::data::{self, procedural};
 use refnpr::stylize::config::{ColourNorm, Placement, RayKernel, StylizeConfig};
 use refnpr::stylize::field::{
-    DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, render_chunks,
+    DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, picked_gradient,
+    render_chunks, render_gathered,
 };
 use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::tcm::{StoredFeatures, Template};
@@ -468,6 +469,62 @@ fn deferred_backprop_equals_direct_backprop() {
     eprintln!("deferred vs direct: relative L2 error {:.2e} (|grad| {norm:.3e})", err / norm);
     assert!(norm > 0.0);
     assert!(err / norm < common::tol(1e-4), "relative error {}", err / norm);
+}
+
+/// Lists kept whole on a GPU (`DeviceSamples::renders_whole`, the
+/// stylization's reference and registered pseudo-rays): the picks'
+/// colours, rendered over the whole lists and then picked, give the host
+/// cut-out's MSE gradient, dense and sparse, with repeats and rays without
+/// samples among the picks; every ray picked in order gives the lists' own
+/// chunks, with the same colours and image gradient as chunked uploads. On
+/// wgpu the backwards sum in other orders (picks by ray first, then rows):
+/// 1e-5 of the largest value. On the CPU backends the picks are gathered,
+/// bit for bit the cut-out's.
+#[test]
+fn picks_rendered_over_whole_lists_match_the_cut_out() {
+    let kind = common::backend();
+    let (d, on_wgpu) = (kind.device(), kind == refnpr::BackendKind::Wgpu);
+    let grid = random_grid(5);
+    let bg = [1.0, 0.5, 0.0];
+    let samples = FrozenSamples::march(&Marcher::new(&grid), &test_camera(40).rays(None), &MarchParams::default(), 0.0);
+    let lists = DeviceSamples::upload(&samples, &d);
+    let n = samples.num_rays;
+    let misses: Vec<usize> = (0..n).filter(|&r| samples.ray_offsets[r] == samples.ray_offsets[r + 1]).collect();
+    assert!(misses.len() > 2 && samples.num_samples() > 1000, "{} misses", misses.len());
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let mut picks = vec![misses[0], misses[0], 5, 5];
+    picks.extend((0..5000).map(|_| rng.random_range(0..n)));
+    picks.push(misses[1]);
+    assert_eq!(lists.renders_whole(&picks), on_wgpu, "a GPU renders these picks over the whole lists");
+    let compare = |ours: &[f32], theirs: &[f32], what: &str| {
+        let scale = theirs.iter().fold(0.0f32, |m, x| m.max(x.abs()));
+        assert!(scale > 0.0 && ours.len() == theirs.len(), "{what}: all zero, or {} vs {}", ours.len(), theirs.len());
+        let worst = ours.iter().zip(theirs).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        eprintln!("{what}: {worst:.2e} of {scale:.2e}");
+        assert!(if on_wgpu { worst <= 1e-5 * scale } else { ours == theirs }, "{what}: {worst:.2e} of {scale:.2e}");
+    };
+    let cut = samples.subset(&picks);
+    let target = floats((0..picks.len() * 3).map(|i| (i % 5) as f32 / 5.0).collect(), [picks.len(), 3], &d);
+    let mse = |rgb: Tensor<2>, start: usize, len: usize| {
+        let e = rgb - target.clone().narrow(0, start, len);
+        (e.clone() * e).sum()
+    };
+    let mut sparse = StepRows::sparse(grid.num_rows());
+    sparse.add(&cut.cell_rows());
+    for rows in [&StepRows::dense(grid.num_rows()), &sparse] {
+        let host = to_vec(chunked_gradient(&grid.sh, &cut, bg, 977, rows, &mse));
+        compare(&to_vec(picked_gradient(&grid.sh, &lists, &picks, 977, bg, rows, &mse)), &host, "picked gradient");
+    }
+    // Every ray in order: on a GPU the lists' own chunk (one here), no gather.
+    let all: Vec<usize> = (0..n).collect();
+    let chunks: Vec<_> = lists.gather_chunks(&all, 173, &grid.sh).collect();
+    assert_eq!(chunks.len(), if on_wgpu { 1 } else { n.div_ceil(173) }, "chunks of every ray");
+    compare(&to_vec(render_gathered(&grid.sh, &chunks, bg)), &render_plain(&grid.sh, &samples, bg, 173), "colours");
+    let g = floats((0..n * 3).map(|_| rng.random::<f32>() - 0.5).collect(), [n, 3], &d);
+    let inject = |rgb: Tensor<2>, start: usize, len: usize| (rgb * g.clone().narrow(0, start, len)).sum();
+    let dense = StepRows::dense(grid.num_rows());
+    let host = to_vec(chunked_gradient(&grid.sh, &samples, bg, 173, &dense, &inject));
+    compare(&to_vec(gathered_gradient(&grid.sh, chunks, bg, &dense, &inject)), &host, "image gradient");
 }
 
 fn tiny_photo_run(dir: &std::path::Path, steps: usize, num_train: usize) -> std::path::PathBuf {

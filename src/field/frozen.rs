@@ -16,8 +16,8 @@ use crate::field::march::{ColourCorners, MarchParams, Marcher, colour_weights};
 use crate::scene::camera::Ray;
 use crate::scene::sh;
 use crate::util::budget_ranges;
-use crate::util::gather_op::{self, RowIndex, sum_runs};
-use crate::util::tensor::{assign_rows, cumsum_rows, floats, indices, select_rows, to_vec};
+use crate::util::gather_op::{RowIndex, gather_rows, runs_of, sum_runs};
+use crate::util::tensor::{assign_rows, cumsum_rows, floats, indices, is_host_memory, select_rows, to_vec};
 use rayon::prelude::*;
 
 /// Rays marched between two checks of a cache's budget (`march_within`):
@@ -321,15 +321,25 @@ impl FrozenSamples {
         self.num_rays += b.num_rays;
     }
 
-    /// The buffers on a device (rows and colour weights written out per sample).
+    /// The buffers on a device (rows and colour weights written out per
+    /// sample), for a render: differentiable, but on a GPU with Burn's
+    /// serial `select` backward (no transpose is built).
     pub fn upload(&self, device: &Device) -> FrozenTensors {
         let (rows, weights) = self.expanded();
-        self.upload_expanded(rows, weights, device)
+        self.upload_expanded(rows, weights, None, device)
     }
 
     /// `upload` with the rows and colour weights of `expanded` given (the
-    /// rows possibly renumbered).
-    pub fn upload_expanded(&self, rows: Vec<i32>, weights: Vec<f32>, device: &Device) -> FrozenTensors {
+    /// rows possibly renumbered). With `table_rows` (the rows of the SH
+    /// table the corners index), on a GPU the corner gather carries its
+    /// transpose, for a parallel backward (`gather_op`).
+    pub fn upload_expanded(
+        &self,
+        rows: Vec<i32>,
+        weights: Vec<f32>,
+        table_rows: Option<usize>,
+        device: &Device,
+    ) -> FrozenTensors {
         let s = self.num_samples();
         let mut ray_of_sample = Vec::with_capacity(s);
         for r in 0..self.num_rays {
@@ -340,7 +350,10 @@ impl FrozenSamples {
         FrozenTensors {
             num_rays: self.num_rays,
             num_samples: s,
-            corner_rows: indices(rows, device),
+            corners: match table_rows {
+                Some(table) => RowIndex::new(rows, table, device),
+                None => RowIndex::plain(indices(rows, device)),
+            },
             colour_weights: floats(weights, [s * 8, 1], device),
             weight: floats(self.weight.clone(), [s, 1], device),
             ray_of_sample: indices(ray_of_sample, device),
@@ -356,7 +369,8 @@ impl FrozenSamples {
 /// three indices per ray (its id, where its samples start in the batch, a
 /// boundary mark), not its samples (72 bytes each, written out per sample
 /// on the device): lego's 100,000 pseudo-rays a step are about 3.5 M
-/// samples.
+/// samples. On a GPU the lists also keep the transpose of their corner
+/// rows (about 32 bytes a sample more), for a parallel backward.
 #[derive(Clone)]
 pub struct DeviceSamples {
     /// Host copy of `FrozenSamples::ray_offsets`: sizes each gather.
@@ -373,6 +387,13 @@ pub struct DeviceSamples {
     final_transmittance: Tensor<2>,
     /// `[rays, 3]`, when the lists carry a far background.
     far: Option<Tensor<2>>,
+    /// On a GPU: the lists themselves in chunks of rays, `(first ray, rays,
+    /// tensors)`, each within one render call's buffers, their corner
+    /// gathers carrying compact transposes (built here, once): a render of
+    /// the whole lists whose backward is parallel (`render_picks`, and
+    /// `gather_chunks` when every ray is picked in order). Empty on the CPU
+    /// backends, whose `select` backward is a loop over host memory.
+    whole: Vec<(usize, usize, FrozenTensors)>,
 }
 
 impl DeviceSamples {
@@ -380,30 +401,104 @@ impl DeviceSamples {
         let (r, s) = (samples.num_rays, samples.num_samples());
         let firsts = samples.ray_offsets[..r].iter().map(|&o| o as i32).collect();
         let (rows, weights) = samples.expanded();
-        Self {
+        let mut lists = Self {
             ray_offsets: samples.ray_offsets.clone(),
             first_sample: indices(firsts, device),
-            corner_rows: indices(rows, device).reshape([s, 8]),
+            corner_rows: indices(rows.clone(), device).reshape([s, 8]),
             colour_weights: floats(weights, [s, 8], device),
             weight: floats(samples.weight.clone(), [s, 1], device),
             final_transmittance: floats(samples.final_transmittance.clone(), [r, 1], device),
             far: far_tensor(&samples.far, device),
+            whole: Vec::new(),
+        };
+        if !is_host_memory(device) {
+            // The colour pass is of degree 0: 3 columns a row.
+            let most = max_samples_per_call(device, 3);
+            let sizes = samples.ray_offsets.windows(2).map(|w| (w[1] - w[0]) as usize);
+            let ranges = budget_ranges(sizes, usize::MAX, most);
+            lists.whole = ranges.into_iter().map(|(first, n)| (first, n, lists.part(first, n, &rows))).collect();
         }
+        lists
+    }
+
+    /// Rays `first..first + n` as they lie in the lists (no gather), their
+    /// corner gather with a compact transpose of `rows` (the lists' corner
+    /// rows on the host).
+    fn part(&self, first: usize, n: usize, rows: &[i32]) -> FrozenTensors {
+        let device = self.weight.device();
+        let (lo, hi) = (self.ray_offsets[first] as usize, self.ray_offsets[first + n] as usize);
+        let total = hi - lo;
+        let ray_starts: Vec<i32> = self.ray_offsets[first..=first + n].iter().map(|&o| o as i32 - lo as i32).collect();
+        let final_transmittance = self.final_transmittance.clone().narrow(0, first, n);
+        let far = self.far.as_ref().map(|far| far.clone().narrow(0, first, n));
+        let Some(ray_of_sample) = runs_of(&ray_starts, total, &device).filter(|_| total > 0) else {
+            return FrozenTensors::background_only(n, final_transmittance, far, &device);
+        };
+        let idx = self.corner_rows.clone().narrow(0, lo, total).reshape([total * 8]);
+        FrozenTensors {
+            num_rays: n,
+            num_samples: total,
+            corners: RowIndex::compact(idx, &rows[lo * 8..hi * 8]),
+            colour_weights: self.colour_weights.clone().narrow(0, lo, total).reshape([total * 8, 1]),
+            weight: self.weight.clone().narrow(0, lo, total),
+            ray_of_sample,
+            ray_starts,
+            final_transmittance,
+            far,
+        }
+    }
+
+    /// The number of rays in the lists.
+    pub fn num_rays(&self) -> usize {
+        self.ray_offsets.len() - 1
+    }
+
+    /// Whether a step picking `rays` had better render the whole lists
+    /// ([`render_picks`](Self::render_picks)) than gather the picks'
+    /// samples: on a GPU, when the picks hold at least a sixteenth of the
+    /// lists' samples. Why: a gather's backward is burn-cubecl's serial
+    /// `select_assign` (one thread per column, looping over every gathered
+    /// corner), the whole lists' is parallel over the rows they read, its
+    /// cost the lists' size; only picks much smaller than the lists make
+    /// the serial loop the cheaper one.
+    pub fn renders_whole(&self, rays: &[usize]) -> bool {
+        let picked: usize = rays.iter().map(|&r| (self.ray_offsets[r + 1] - self.ray_offsets[r]) as usize).sum();
+        let all = *self.ray_offsets.last().unwrap_or(&0) as usize;
+        !self.whole.is_empty() && picked.saturating_mul(16) >= all
+    }
+
+    /// The colours `[rays.len(), 3]` of `rays` (repeats allowed) from `sh`:
+    /// every ray of the lists rendered, then the picks gathered (with a
+    /// transpose, built on the host from `rays`). Differentiable in `sh`,
+    /// both backwards parallel. Only where `renders_whole` holds.
+    pub fn render_picks(&self, sh: Tensor<2>, rays: &[usize], background: [f32; 3]) -> Tensor<2> {
+        assert!(!self.whole.is_empty(), "render_picks needs the whole lists on a GPU (renders_whole)");
+        let parts: Vec<Tensor<2>> =
+            self.whole.iter().map(|(_, _, ft)| render_colour(sh.clone(), ft, background)).collect();
+        let all = Tensor::cat(parts, 0);
+        let device = all.device();
+        gather_rows(all, &RowIndex::new(rays.iter().map(|&r| r as i32).collect(), self.num_rays(), &device))
     }
 
     /// [`gather`](Self::gather) of `rays` in chunks of `chunk` rays, each
     /// with no more samples than a render from `sh` may hold on its device
     /// ([`FrozenSamples::chunks`]): `(first ray, rays, samples)` per chunk,
     /// gathered as it is reached.
+    /// When every ray is picked in order and the lists are kept whole (a
+    /// GPU), the chunks are those lists' own, no gather needed.
     pub fn gather_chunks<'a>(
         &'a self,
         rays: &'a [usize],
         chunk: usize,
         sh: &Tensor<2>,
-    ) -> impl Iterator<Item = (usize, usize, FrozenTensors)> + 'a {
+    ) -> Box<dyn Iterator<Item = (usize, usize, FrozenTensors)> + 'a> {
+        let in_order = rays.len() == self.num_rays() && rays.iter().enumerate().all(|(i, &r)| i == r);
+        if in_order && !self.whole.is_empty() {
+            return Box::new(self.whole.iter().cloned());
+        }
         let most = max_samples_per_call(&sh.device(), sh.dims()[1]);
         let sizes = rays.iter().map(|&r| (self.ray_offsets[r + 1] - self.ray_offsets[r]) as usize);
-        budget_ranges(sizes, chunk, most).into_iter().map(move |(s, n)| (s, n, self.gather(&rays[s..s + n])))
+        Box::new(budget_ranges(sizes, chunk, most).into_iter().map(move |(s, n)| (s, n, self.gather(&rays[s..s + n]))))
     }
 
     /// The samples of `rays` (in that order; repeats allowed): the same
@@ -423,20 +518,10 @@ impl DeviceSamples {
         let final_transmittance = select_rows(self.final_transmittance.clone(), ray_ids.clone());
         let far = self.far.as_ref().map(|far| select_rows(far.clone(), ray_ids.clone()));
         if total == 0 {
-            return FrozenTensors {
-                num_rays: rays.len(),
-                num_samples: 0,
-                corner_rows: Tensor::zeros([0], &device),
-                colour_weights: Tensor::zeros([0, 1], &device),
-                weight: Tensor::zeros([0, 1], &device),
-                ray_of_sample: Tensor::zeros([0], &device),
-                ray_starts: vec![0; rays.len() + 1],
-                final_transmittance,
-                far,
-            };
+            return FrozenTensors::background_only(rays.len(), final_transmittance, far, &device);
         }
         let ray_starts: Vec<i32> = starts.iter().copied().chain([total as i32]).collect();
-        let ray_of_sample = match gather_op::runs_of(&ray_starts, total, &device) {
+        let ray_of_sample = match runs_of(&ray_starts, total, &device) {
             Some(runs) => runs,
             None => ray_of_sample_by_marks(&starts, total, &device),
         };
@@ -446,7 +531,7 @@ impl DeviceSamples {
         FrozenTensors {
             num_rays: rays.len(),
             num_samples: total,
-            corner_rows: select_rows(self.corner_rows.clone(), sample_ids.clone()).reshape([total * 8]),
+            corners: RowIndex::plain(select_rows(self.corner_rows.clone(), sample_ids.clone()).reshape([total * 8])),
             colour_weights: select_rows(self.colour_weights.clone(), sample_ids.clone()).reshape([total * 8, 1]),
             weight: select_rows(self.weight.clone(), sample_ids),
             ray_of_sample,
@@ -477,10 +562,12 @@ fn far_tensor(far: &[[f32; 3]], device: &Device) -> Option<Tensor<2>> {
 }
 
 /// `FrozenSamples` uploaded to a device.
+#[derive(Clone)]
 pub struct FrozenTensors {
     pub num_rays: usize,
     pub num_samples: usize,
-    pub corner_rows: Tensor<1, Int>,
+    /// The grid rows of each sample's 8 corners, `[samples * 8]`.
+    pub corners: RowIndex,
     pub colour_weights: Tensor<2>,
     pub weight: Tensor<2>,
     pub ray_of_sample: Tensor<1, Int>,
@@ -490,6 +577,23 @@ pub struct FrozenTensors {
     pub final_transmittance: Tensor<2>,
     /// `[rays, 3]` far background colours, else the constant background.
     pub far: Option<Tensor<2>>,
+}
+
+impl FrozenTensors {
+    /// `rays` rays without samples: only their background shows.
+    fn background_only(rays: usize, final_transmittance: Tensor<2>, far: Option<Tensor<2>>, device: &Device) -> Self {
+        Self {
+            num_rays: rays,
+            num_samples: 0,
+            corners: RowIndex::plain(Tensor::zeros([0], device)),
+            colour_weights: Tensor::zeros([0, 1], device),
+            weight: Tensor::zeros([0, 1], device),
+            ray_of_sample: Tensor::zeros([0], device),
+            ray_starts: vec![0; rays + 1],
+            final_transmittance,
+            far,
+        }
+    }
 }
 
 /// Colours `[rays, 3]` of the rays from degree-0 SH rows `sh` (`[rows, 3]`):
@@ -504,7 +608,7 @@ pub fn render_colour(sh: Tensor<2>, ft: &FrozenTensors, background: [f32; 3]) ->
     if ft.num_samples == 0 {
         return background_part;
     }
-    let coeff = interpolate_corners(sh, &RowIndex::plain(ft.corner_rows.clone()), ft.colour_weights.clone());
+    let coeff = interpolate_corners(sh, &ft.corners, ft.colour_weights.clone());
     let colour = relu(coeff * sh::C0 + 0.5);
     let contribution = colour * ft.weight.clone();
     sum_runs(contribution, &ft.ray_of_sample, &ft.ray_starts) + background_part

@@ -1,8 +1,9 @@
 //! The radiance field: the sparse voxel grid (`grid`), ray marching in plain
-//! Rust (`march`), the differentiable compositing graph (`composite`), the
-//! colour-only renderer over frozen density (`frozen`; `host_colour`, its
-//! fused plain-Rust twin for the CPU backends), what the optimisers
-//! share (`optim`), the far background behind the box (`environment`) and
+//! Rust (`march`), the differentiable compositing graph (`composite`;
+//! `composite_op`, its GPU kernel), the colour-only renderer over frozen
+//! density (`frozen`; `host_colour`, its fused plain-Rust twin for the CPU
+//! backends), what the optimisers share (`optim`; `optim_op`, RMSprop's
+//! GPU kernel), the far background behind the box (`environment`) and
 //! single-file checkpoints (`checkpoint`).
 
 pub mod checkpoint;
@@ -16,6 +17,7 @@ pub(crate) mod host_fit;
 pub(crate) mod host_render;
 pub mod march;
 pub mod optim;
+pub mod optim_op;
 pub mod render_path;
 pub mod view;
 

@@ -7,7 +7,7 @@
 //! per-coordinate normalisation copes with the very different gradient
 //! scales of density and colour.
 
-use burn::tensor::{Int, Tensor};
+use burn::tensor::{Device, Int, Tensor};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -15,6 +15,7 @@ use std::sync::atomic::{AtomicI32, AtomicU64, Ordering::Relaxed};
 
 use crate::field::grid::CellLattice;
 use crate::util::rows_op;
+use crate::util::tensor::{floats, indices, is_host_memory, to_vec};
 
 /// Exponential decay from `a` to `b` over `t` in [0, 1].
 pub fn log_lerp(a: f32, b: f32, t: f32) -> f32 {
@@ -70,8 +71,8 @@ impl Rmsprop {
 
     /// A lazy step on the given rows only ("sparse" updates as Plenoxels:
     /// cost follows the rows, not the grid); `rows_t` holds `rows` as a
-    /// tensor and `grad` those rows' gradients in the same order. Returns
-    /// what was added to the rows.
+    /// tensor and `grad` those rows' gradients in the same order (distinct
+    /// rows). On a GPU one kernel per tensor (`field::optim_op`).
     pub fn step_rows(
         &self,
         param: &mut Tensor<2>,
@@ -80,13 +81,28 @@ impl Rmsprop {
         rows_t: &Tensor<1, Int>,
         grad: Tensor<2>,
         lr: f32,
-    ) -> Tensor<2> {
+    ) {
+        #[cfg(feature = "wgpu")]
+        if !is_host_memory(&param.device()) {
+            use crate::field::optim_op::OptimBackend;
+            let (p, a) = <burn::backend::Dispatch as OptimBackend>::rmsprop_rows(
+                take(param).into_dispatch(),
+                take(avg).into_dispatch(),
+                rows_t.clone().into_dispatch(),
+                grad.into_dispatch(),
+                self.beta,
+                self.eps,
+                lr,
+                self.start == RmsStart::FirstGrad,
+            );
+            (*param, *avg) = (Tensor::from_dispatch(p), Tensor::from_dispatch(a));
+            return;
+        }
         let v_old = rows_op::gather_rows(avg, rows, rows_t);
         let v_new = self.average(v_old.clone(), grad.clone());
         let update = self.normalised(grad, v_new.clone()) * (-lr);
         add_rows(avg, rows, rows_t, v_new - v_old);
-        add_rows(param, rows, rows_t, update.clone());
-        update
+        add_rows(param, rows, rows_t, update);
     }
 
     /// One coordinate's step: from its running average `v` and gradient `g`,
@@ -241,6 +257,61 @@ pub fn add_tv_gradient_per_channel(
             }
         }
     }
+}
+
+/// A step's TV terms as the TV kernel reads them: for each of the first
+/// `num_core` rows (the centres) its +x, +y, +z neighbour (itself where
+/// there is none), on the device (and on the host, for the CPU backends).
+pub struct TvLinks {
+    neighbours: [Vec<i32>; 3],
+    /// `[3 num_core]`: the neighbours, axis by axis.
+    links: Tensor<1, Int>,
+    num_core: usize,
+}
+
+impl TvLinks {
+    /// The neighbours of centres `0..neighbours[0].len()`, uploaded to
+    /// `device`. Along each axis, no two centres may share a neighbour
+    /// other than themselves (a lattice's neighbours; checked).
+    pub fn new(neighbours: &[Vec<i32>; 3], device: &Device) -> Self {
+        let num_core = neighbours[0].len();
+        let mut seen = std::collections::HashSet::new();
+        for (axis, nb) in neighbours.iter().enumerate() {
+            seen.clear();
+            for (centre, &r) in nb.iter().enumerate() {
+                let shared = r as usize != centre && !seen.insert(r);
+                assert!(!shared, "row {r} is the neighbour of two centres along axis {axis}");
+            }
+        }
+        let links = indices(neighbours.iter().flatten().copied().collect(), device);
+        Self { neighbours: neighbours.clone(), links, num_core }
+    }
+}
+
+/// `grad` plus the gradient of `scale` x Plenoxels' per-channel TV of
+/// `values` (`[rows, cols]`) over the centres of `links`:
+/// `optim::add_tv_gradient_per_channel`'s numbers, on the GPU by one
+/// thread per value (`field::optim_op`), on the CPU backends by that function.
+pub fn add_tv_gradient(grad: Tensor<2>, values: &Tensor<2>, links: &TvLinks, scale: f32) -> Tensor<2> {
+    if links.num_core == 0 {
+        return grad;
+    }
+    #[cfg(feature = "wgpu")]
+    if !is_host_memory(&grad.device()) {
+        use crate::field::optim_op::OptimBackend;
+        let out = <burn::backend::Dispatch as OptimBackend>::add_tv_gradient(
+            grad.into_dispatch(),
+            values.clone().into_dispatch(),
+            links.links.clone().into_dispatch(),
+            links.num_core,
+            scale,
+        );
+        return Tensor::from_dispatch(out);
+    }
+    let (dims, device) = (grad.dims(), grad.device());
+    let mut host = to_vec(grad);
+    add_tv_gradient_per_channel(&to_vec(values.clone()), dims[1], &links.neighbours, scale, &mut host);
+    floats(host, dims, &device)
 }
 
 /// A subset of grid rows (those a step touches) and the map grid row ->
@@ -535,5 +606,92 @@ mod tests {
         u.reset_to_union_with_cells(12, &[&[11]], &lattice, &[&[1], &[0, 0]]);
         // Cell 1: points 1, 2, 4 (empty), 5; cell 0: points 0, 1, 3, 4 (empty).
         assert_eq!(u.rows(), &[5, 6, 7, 8, 9, 11]);
+    }
+}
+
+/// `Rmsprop::step_rows` (`field::optim_op`'s kernel on a GPU, Burn's operations on the CPU
+/// backends) against `Rmsprop::host_step_rows` (the arithmetic in plain
+/// Rust), on every backend the test command runs (`cargo test --lib
+/// graph_oracle`).
+#[cfg(test)]
+#[allow(clippy::print_stdout)] // the measured errors, shown with --nocapture
+mod graph_oracle {
+    use burn::tensor::Tensor;
+
+    use super::{RmsStart, Rmsprop, TvLinks, add_tv_gradient, add_tv_gradient_per_channel};
+    use crate::test_support::device;
+    use crate::util::tensor::{floats, indices, to_vec};
+
+    /// The TV gradient (`field::optim_op`'s kernel on a GPU) against the host
+    /// loop `add_tv_gradient_per_channel`, on a 6³ lattice whose first 100
+    /// rows are the centres (those on the far faces are their own
+    /// neighbours there): 1e-5 of the largest value (the kernel adds each
+    /// row's terms in another order), rows no centre reaches unchanged.
+    #[test]
+    fn the_tv_gradient_matches_the_host_loop() {
+        let dev = device();
+        let (side, cols, num_core) = (6usize, 4usize, 100usize);
+        let rows = side.pow(3);
+        let step = |i: usize, stride: usize, coord: usize| if coord + 1 < side { i + stride } else { i } as i32;
+        let neighbours: [Vec<i32>; 3] = [
+            (0..num_core).map(|i| step(i, 1, i % side)).collect(),
+            (0..num_core).map(|i| step(i, side, i / side % side)).collect(),
+            (0..num_core).map(|i| step(i, side * side, i / (side * side))).collect(),
+        ];
+        let values: Vec<f32> = (0..rows * cols).map(|i| ((i * 37) % 29) as f32 / 29.0 - 0.3).collect();
+        let before: Vec<f32> = (0..rows * cols).map(|i| ((i * 11) % 7) as f32 * 0.01).collect();
+        let links = TvLinks::new(&neighbours, &dev);
+        let values_t = floats(values.clone(), [rows, cols], &dev);
+        let ours = to_vec(add_tv_gradient(floats(before.clone(), [rows, cols], &dev), &values_t, &links, 0.7));
+        let mut host = before.clone();
+        add_tv_gradient_per_channel(&values, cols, &neighbours, 0.7, &mut host);
+        let scale = host.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let err = ours.iter().zip(&host).fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+        println!("TV gradient: max |kernel - host| = {err:.2e} of {scale:.2e}");
+        assert!(err <= 1e-5 * scale, "{err:.2e} of {scale:.2e}");
+        let reached = num_core + side * side;
+        assert!(ours[..reached * cols] != before[..reached * cols], "the TV terms added nothing");
+        assert!(ours[reached * cols..] == before[reached * cols..], "rows no centre reaches moved");
+    }
+
+    /// Both starts, over rows whose averages are zero (a first step) and
+    /// rows already averaged, gradients of both signs and zero: the same
+    /// parameters and averages to 1e-6 of their largest value (a GPU's
+    /// division and square root need not round as the CPU's do); the rows
+    /// outside the step and a copy of the tensors taken before it keep
+    /// their values exactly.
+    #[test]
+    fn the_row_step_matches_the_host_step() {
+        let dev = device();
+        let (n, cols) = (300, 9);
+        let rows: Vec<i32> = (0..120).map(|k| (k * 7 + 3) % n as i32).collect();
+        let param: Vec<f32> = (0..n * cols).map(|i| ((i * 31) % 19) as f32 / 19.0 - 0.5).collect();
+        let avg: Vec<f32> =
+            (0..n * cols).map(|i| if i % 3 == 0 { 0.0 } else { ((i * 17) % 11) as f32 * 1e-3 }).collect();
+        let grad: Vec<f32> = (0..rows.len() * cols).map(|i| ((i * 13) % 9) as f32 * 0.1 - 0.4).collect();
+        let rows_t = indices(rows.clone(), &dev);
+        for start in [RmsStart::Zero, RmsStart::FirstGrad] {
+            let opt = Rmsprop { beta: 0.95, eps: 1e-8, start };
+            let (mut p, mut a) = (floats(param.clone(), [n, cols], &dev), floats(avg.clone(), [n, cols], &dev));
+            let (kept_p, kept_a): (Tensor<2>, Tensor<2>) = (p.clone(), a.clone());
+            opt.step_rows(&mut p, &mut a, &rows, &rows_t, floats(grad.clone(), [rows.len(), cols], &dev), 0.3);
+            let (mut hp, mut ha) = (floats(param.clone(), [n, cols], &dev), floats(avg.clone(), [n, cols], &dev));
+            opt.host_step_rows(&mut hp, &mut ha, &rows, &rows_t, &grad, 0.3);
+            assert!(to_vec(kept_p) == param && to_vec(kept_a) == avg, "{start:?}: a copy taken before changed");
+            for (name, ours, host, before) in [("param", p, hp, &param), ("avg", a, ha, &avg)] {
+                let (ours, host) = (to_vec(ours), to_vec(host));
+                let scale = host.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+                let err = ours.iter().zip(&host).fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+                println!("{start:?} {name}: max |step_rows - host| = {err:.2e} of {scale:.2e}");
+                assert!(err <= 1e-6 * scale, "{start:?} {name}: {err:.2e} of {scale:.2e}");
+                assert!(ours != *before, "{start:?} {name}: the step changed nothing");
+                for r in (0..n).filter(|r| !rows.contains(&(*r as i32))) {
+                    assert!(
+                        ours[r * cols..(r + 1) * cols] == before[r * cols..(r + 1) * cols],
+                        "{name}: row {r} moved"
+                    );
+                }
+            }
+        }
     }
 }

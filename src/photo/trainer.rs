@@ -26,7 +26,8 @@ use crate::field::grid::{GridGeometry, RadianceGrid, kept_on_host};
 use crate::field::host_fit::{self, FitBuffers};
 use crate::field::march::{BlockOccupancy, Marcher, SampleBatch};
 use crate::field::optim::{
-    RmsStart, Rmsprop, RowSubset, TvNorm, add_tv_gradient_per_channel, log_lerp, total_variation,
+    RmsStart, Rmsprop, RowSubset, TvLinks, TvNorm, add_tv_gradient, add_tv_gradient_per_channel, log_lerp,
+    total_variation,
 };
 use crate::photo::config::{FarBackground, GridConfig, TrainConfig};
 use crate::scene::camera::Ray;
@@ -34,8 +35,8 @@ use crate::scene::data::{Dataset, DatasetKind};
 use crate::util::backend::max_buffer_bytes;
 use crate::util::profile::StepProfile;
 use crate::util::rng::{Stream, step_rng};
-use crate::util::rows_op::{PREFETCH_AHEAD, read_rows_into};
-use crate::util::tensor::{floats, indices, scalar, select_rows, to_vec};
+use crate::util::rows_op::{PREFETCH_AHEAD, read_rows, read_rows_into};
+use crate::util::tensor::{floats, indices, is_host_memory, scalar, select_rows, to_vec};
 use crate::util::transfer::human_bytes;
 
 /// RMSprop running averages of squared gradients, one per grid row.
@@ -378,10 +379,10 @@ impl Trainer {
             let (lr_d, lr_s) = self.learning_rates();
             let rmsprop = self.rmsprop();
             let rows = self.subset.rows();
-            let old_d = self.grid.density.clone().select(0, rows_t.clone());
-            let step_d = rmsprop.step_rows(&mut self.grid.density, &mut self.state.density, rows, rows_t, gd, lr_d);
+            rmsprop.step_rows(&mut self.grid.density, &mut self.state.density, rows, rows_t, gd, lr_d);
             rmsprop.step_rows(&mut self.grid.sh, &mut self.state.sh, rows, rows_t, gs, lr_s);
-            for (r, v) in rows.iter().zip(to_vec(old_d + step_d)) {
+            // The host copy of the densities takes the rows' new values.
+            for (r, v) in rows.iter().zip(read_rows(&self.grid.density, rows, rows_t)) {
                 self.grid.density_cpu[*r as usize] = v;
             }
         });
@@ -487,6 +488,8 @@ impl Trainer {
         let runs = batch.ray_runs(most);
         // The batch's MSE is its squared errors' sum over 3 x rays.
         let per_value = 1.0 / (3 * batch.num_rays.max(1)) as f32;
+        // On a GPU the TV terms' gradient is a kernel of its own (`tv_gradients`), not a graph.
+        let tv_in_graph = is_host_memory(plain);
         let (mut gd, mut gs, mut squared) = (None::<Tensor<2>>, None::<Tensor<2>>, 0.0f32);
         let mut far = Vec::new();
         for (i, &(first, count)) in runs.iter().enumerate() {
@@ -509,7 +512,7 @@ impl Trainer {
             let diff = out.rgb - target_t;
             let run_squared = (diff.clone() * diff).sum();
             let mut loss = run_squared.clone() * per_value;
-            if i == 0 {
+            if i == 0 && tv_in_graph {
                 loss = loss + self.tv_loss(local, &ld, &ls);
             }
             let grads = loss.backward();
@@ -525,10 +528,38 @@ impl Trainer {
             }
             squared += scalar(run_squared.inner());
         }
-        let back = |sum: Option<Tensor<2>>, like: &Tensor<2>| {
-            sum.unwrap_or_else(|| Tensor::zeros(like.dims(), plain)).to_device(&storage)
-        };
-        (back(gd, &density), back(gs, &sh), squared * per_value, far)
+        let or_zeros =
+            |sum: Option<Tensor<2>>, like: &Tensor<2>| sum.unwrap_or_else(|| Tensor::zeros(like.dims(), plain));
+        let (mut gd, mut gs) = (or_zeros(gd, &density), or_zeros(gs, &sh));
+        if !tv_in_graph {
+            (gd, gs) = self.tv_gradients(local, &density, &sh, gd, gs);
+        }
+        (gd.to_device(&storage), gs.to_device(&storage), squared * per_value, far)
+    }
+
+    /// `gd` and `gs` plus the gradients of the TV terms (`tv_loss`'s), by
+    /// the TV kernel (`field::optim_op`).
+    fn tv_gradients(
+        &self,
+        local: &TvNeighbours,
+        density: &Tensor<2>,
+        sh: &Tensor<2>,
+        mut gd: Tensor<2>,
+        mut gs: Tensor<2>,
+    ) -> (Tensor<2>, Tensor<2>) {
+        let o = &self.config.optim;
+        if local.num_core == 0 || (o.tv_density <= 0.0 && o.tv_sh <= 0.0) {
+            return (gd, gs);
+        }
+        let links = TvLinks::new(&local.neighbours, &density.device());
+        let per_row = 1.0 / local.num_core as f32;
+        if o.tv_density > 0.0 {
+            gd = add_tv_gradient(gd, density, &links, o.tv_density * per_row);
+        }
+        if o.tv_sh > 0.0 {
+            gs = add_tv_gradient(gs, sh, &links, o.tv_sh * per_row);
+        }
+        (gd, gs)
     }
 
     /// The TV terms on the step's TV rows (zero when there are none).

@@ -9,7 +9,7 @@ use burn::tensor::{IndexingUpdateOp, Int, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
-use crate::field::frozen::{self, FrozenSamples};
+use crate::field::frozen::{self, DeviceSamples, FrozenSamples};
 use crate::field::grid::{CellLattice, RadianceGrid};
 use crate::field::optim::{Rmsprop, RowSubset, TvNorm, total_variation};
 use crate::scene::sh;
@@ -282,13 +282,8 @@ impl DeviceChunk {
         subset.reset_to(num_grid_rows, &rows);
         let local = rows.iter().map(|&r| subset.local(r)).collect();
         let rows = subset.rows().to_vec();
-        Self {
-            start,
-            len,
-            rows_t: indices(rows.clone(), device),
-            rows,
-            samples: part.upload_expanded(local, weights, device),
-        }
+        let samples = part.upload_expanded(local, weights, Some(rows.len()), device);
+        Self { start, len, rows_t: indices(rows.clone(), device), rows, samples }
     }
 
     /// Every chunk of `samples`, uploaded.
@@ -411,6 +406,32 @@ pub fn gathered_gradient(
         }
     }
     rows.take_from(total)
+}
+
+/// [`gathered_gradient`] of the picks `picks` (repeats allowed) of lists
+/// kept on the device, in chunks of `chunk` rays; on a GPU, when the picks
+/// are a large enough share of the lists (`DeviceSamples::renders_whole`),
+/// by one render of the whole lists instead, whose backward is parallel.
+/// `loss_of` sees the picks' colours whole (`start` 0) then.
+pub fn picked_gradient(
+    sh: &Tensor<2>,
+    lists: &DeviceSamples,
+    picks: &[usize],
+    chunk: usize,
+    background: [f32; 3],
+    rows: &StepRows,
+    loss_of: &dyn Fn(Tensor<2>, usize, usize) -> Tensor<1>,
+) -> Tensor<2> {
+    if !lists.renders_whole(picks) {
+        return gathered_gradient(sh, lists.gather_chunks(picks, chunk, sh), background, rows, loss_of);
+    }
+    let leaf = sh.clone().autodiff().require_grad();
+    let loss = loss_of(lists.render_picks(leaf.clone(), picks, background), 0, picks.len());
+    let total = match loss.is_tracked() {
+        true => leaf.grad(&loss.backward()),
+        false => None,
+    };
+    rows.take_from(total.unwrap_or_else(|| Tensor::zeros(sh.dims(), &sh.device())))
 }
 
 /// Checked against the Burn graph and autodiff, on every backend the test

@@ -27,8 +27,8 @@ use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::config::{LrSchedule, StylizeConfig, TransferPixels, WhiteOn};
 use crate::stylize::far::stylized_far;
 use crate::stylize::field::{
-    DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, render_chunks,
-    render_gathered,
+    DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, picked_gradient,
+    render_chunks, render_gathered,
 };
 use crate::stylize::losses;
 use crate::stylize::samples::{PseudoRays, SampleCache};
@@ -418,9 +418,7 @@ impl<'a> StyleStep<'a> {
         let (sh, chunk) = (&self.field.grid.sh, self.cfg.render_chunk);
         let grad = match rays {
             RaySet::Host(samples) => chunked_gradient(sh, samples, self.background, chunk, rows, &loss_of),
-            RaySet::Gathered(lists, picks) => {
-                gathered_gradient(sh, lists.gather_chunks(picks, chunk, sh), self.background, rows, &loss_of)
-            }
+            RaySet::Gathered(lists, picks) => picked_gradient(sh, lists, picks, chunk, self.background, rows, &loss_of),
         };
         (grad, value.into_inner().map_or(0.0, scalar))
     }

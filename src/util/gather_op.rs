@@ -24,6 +24,7 @@ use burn::tensor::{IndexingUpdateOp, Int, Tensor};
 use crate::util::tensor::{indices, is_host_memory, select_rows};
 
 /// A gather index with, on a GPU device, its transpose for the backward.
+#[derive(Clone)]
 pub struct RowIndex {
     /// The rows to gather, `[n]`.
     pub idx: Tensor<1, Int>,
@@ -33,6 +34,10 @@ pub struct RowIndex {
     /// row gets no gradient (the constant padding row of a packed layout),
     /// and neither do table rows beyond `rows`.
     transpose: Option<(Tensor<1, Int>, Tensor<1, Int>)>,
+    /// With a compact transpose (`compact_transpose_of`): the rows read,
+    /// ascending, run `k` of `order` being row `touched[k]`'s; empty when
+    /// run `k` is row `k`'s.
+    touched: Option<Tensor<1, Int>>,
 }
 
 impl RowIndex {
@@ -43,19 +48,53 @@ impl RowIndex {
             let (order, offsets) = transpose_of(&idx, rows);
             (indices(order, device), indices(offsets, device))
         });
-        Self { idx: indices(idx, device), transpose }
+        Self { idx: indices(idx, device), transpose, touched: None }
+    }
+
+    /// `idx` already on its device, `host` its values: on a GPU with a
+    /// compact transpose (the rows read only), whose size is the entries',
+    /// not the table's. For indices kept on the device for many steps (a
+    /// stylization's cached sample lists), where a table-sized `offsets`
+    /// per index would add up.
+    pub fn compact(idx: Tensor<1, Int>, host: &[i32]) -> Self {
+        let device = idx.device();
+        if is_host_memory(&device) {
+            return Self::plain(idx);
+        }
+        let (touched, order, offsets) = compact_transpose_of(host);
+        Self {
+            idx,
+            transpose: Some((indices(order, &device), indices(offsets, &device))),
+            touched: Some(indices(touched, &device)),
+        }
     }
 
     /// The transpose (`order`, `offsets`; `transpose_of`), when built.
+    /// A compact one (`RowIndex::compact`) is not given out.
     pub fn transpose(&self) -> Option<(&Tensor<1, Int>, &Tensor<1, Int>)> {
-        self.transpose.as_ref().map(|(order, offsets)| (order, offsets))
+        match self.touched {
+            Some(_) => None,
+            None => self.transpose.as_ref().map(|(order, offsets)| (order, offsets)),
+        }
     }
 
     /// The index alone, with Burn's `select` backward (the CPU backends, or
     /// a forward without gradients).
     pub fn plain(idx: Tensor<1, Int>) -> Self {
-        Self { idx, transpose: None }
+        Self { idx, transpose: None, touched: None }
     }
+}
+
+/// [`transpose_of`] over the rows `idx` reads only: those rows ascending
+/// (`touched`), the positions reading each, ascending (`order`), and where
+/// each touched row's positions start (`offsets`, `touched.len() + 1`
+/// values). Negative entries are left out.
+pub fn compact_transpose_of(idx: &[i32]) -> (Vec<i32>, Vec<i32>, Vec<i32>) {
+    let rows = idx.iter().copied().max().map_or(0, |m| (m + 1).max(0) as usize);
+    let (order, dense) = transpose_of(idx, rows);
+    let touched: Vec<i32> = (0..rows).filter(|&r| dense[r + 1] > dense[r]).map(|r| r as i32).collect();
+    let offsets = touched.iter().map(|&r| dense[r as usize]).chain([dense[rows]]).collect();
+    (touched, order, offsets)
 }
 
 /// For each row below `rows`, the positions in `idx` that read it, rows in
@@ -87,11 +126,14 @@ pub fn transpose_of(idx: &[i32], rows: usize) -> (Vec<i32>, Vec<i32>) {
 pub fn gather_rows(x: Tensor<2>, index: &RowIndex) -> Tensor<2> {
     #[cfg(feature = "wgpu")]
     if let Some((order, offsets)) = &index.transpose {
+        // An empty `touched` says the runs are the rows 0, 1, ... in order.
+        let touched = index.touched.clone().unwrap_or_else(|| Tensor::zeros([0], &x.device()));
         let out = <burn::backend::Dispatch as GatherBackend>::gather_rows(
             x.into_dispatch(),
             index.idx.clone().into_dispatch(),
             order.clone().into_dispatch(),
             offsets.clone().into_dispatch(),
+            touched.into_dispatch(),
         );
         return Tensor::from_dispatch(out);
     }
@@ -179,28 +221,33 @@ mod cube_op {
     use burn_cubecl::cubecl::prelude::*;
     use burn_cubecl::cubecl::{CubeDim, calculate_cube_count_elemwise};
     use burn_cubecl::kernel::into_contiguous;
-    use burn_cubecl::ops::numeric::empty_device_dtype;
+    use burn_cubecl::ops::numeric::{empty_device_dtype, zeros_client};
     use burn_cubecl::tensor::CubeTensor;
 
     /// A row gather with a parallel backward (module docs).
     #[backend_extension(Cube, Autodiff)]
     pub trait GatherBackend: Backend {
         /// `x` `[rows, cols]` gathered at `idx` `[n]`: `[n, cols]`.
-        /// `order` and `offsets` are `idx`'s transpose (`transpose_of`).
+        /// `order` and `offsets` are `idx`'s transpose (`transpose_of`),
+        /// or its compact form with `touched` (`compact_transpose_of`;
+        /// `touched` empty for the full form).
         fn gather_rows(
             x: FloatTensor<Self>,
             idx: IntTensor<Self>,
             order: IntTensor<Self>,
             offsets: IntTensor<Self>,
+            touched: IntTensor<Self>,
         ) -> FloatTensor<Self>;
 
         /// The gather's backward: `grad` `[n, cols]` summed by the rows
         /// its entries read, `[rows, cols]`; rows the transpose does not
-        /// cover (`offsets` has fewer than `rows + 1` values) get zeros.
+        /// cover (`offsets` has fewer than `rows + 1` values, or they are
+        /// not among `touched`) get zeros.
         fn sum_by_rows(
             grad: FloatTensor<Self>,
             order: IntTensor<Self>,
             offsets: IntTensor<Self>,
+            touched: IntTensor<Self>,
             rows: usize,
         ) -> FloatTensor<Self>;
 
@@ -234,32 +281,45 @@ mod cube_op {
     }
 
     /// One thread per output value: the row's entries summed in `order`.
+    /// `compact`: the runs are those of the rows `touched` (the other rows'
+    /// zeros are already written), else run `k` is row `k`'s.
     #[cube(launch)]
+    #[allow(clippy::too_many_arguments)]
     fn sum_by_rows_kernel<F: Float, I: Numeric>(
         grad: &Tensor<F>,
         order: &Tensor<I>,
         offsets: &Tensor<I>,
+        touched: &Tensor<I>,
         out: &mut Tensor<F>,
         cols: u32,
+        #[comptime] compact: bool,
         #[define(F, I)] _dtypes: [ElemType; 2],
     ) {
         let pos = ABSOLUTE_POS;
-        if pos >= out.len() {
+        let c = cols as usize;
+        let mut units = out.len();
+        if compact {
+            units = touched.len() * c;
+        }
+        if pos >= units {
             terminate!();
         }
-        let c = cols as usize;
-        let row = pos / c;
+        let run = pos / c;
         let col = pos % c;
         let mut acc = F::new(0.0);
-        if row + 1 < offsets.len() {
-            let start = u32::cast_from(offsets[row]) as usize;
-            let end = u32::cast_from(offsets[row + 1]) as usize;
+        if run + 1 < offsets.len() {
+            let start = u32::cast_from(offsets[run]) as usize;
+            let end = u32::cast_from(offsets[run + 1]) as usize;
             for k in start..end {
                 let entry = u32::cast_from(order[k]) as usize;
                 acc += grad[entry * c + col];
             }
         }
-        out[pos] = acc;
+        let mut row = run;
+        if compact {
+            row = u32::cast_from(touched[run]) as usize;
+        }
+        out[row * c + col] = acc;
     }
 
     /// One thread per written value.
@@ -312,6 +372,7 @@ mod cube_op {
             idx: IntTensor<Self>,
             _order: IntTensor<Self>,
             _offsets: IntTensor<Self>,
+            _touched: IntTensor<Self>,
         ) -> FloatTensor<Self> {
             // The forward is Burn's own gather: one thread per output value.
             <Cube as FloatTensorOps<Cube>>::float_select(x, 0, idx)
@@ -321,9 +382,10 @@ mod cube_op {
             grad: FloatTensor<Self>,
             order: IntTensor<Self>,
             offsets: IntTensor<Self>,
+            touched: IntTensor<Self>,
             rows: usize,
         ) -> FloatTensor<Self> {
-            sum_by_rows(grad, order, offsets, rows)
+            sum_by_rows(grad, order, offsets, touched, rows)
         }
 
         fn sum_runs(
@@ -333,7 +395,8 @@ mod cube_op {
             _run_of: IntTensor<Self>,
             rows: usize,
         ) -> FloatTensor<Self> {
-            sum_by_rows(values, order, offsets, rows)
+            let none = empty_device_dtype(order.client.clone(), order.device.clone(), Shape::new([0]), order.dtype);
+            sum_by_rows(values, order, offsets, none, rows)
         }
 
         fn runs_of(starts: IntTensor<Self>, total: usize) -> IntTensor<Self> {
@@ -402,18 +465,36 @@ mod cube_op {
         tensor
     }
 
-    fn sum_by_rows(grad: CubeTensor, order: CubeTensor, offsets: CubeTensor, rows: usize) -> CubeTensor {
+    /// `grad`'s entries summed by rows (`sum_by_rows_kernel`); `touched`
+    /// empty for a full transpose, else a compact one's rows.
+    fn sum_by_rows(
+        grad: CubeTensor,
+        order: CubeTensor,
+        offsets: CubeTensor,
+        touched: CubeTensor,
+        rows: usize,
+    ) -> CubeTensor {
         let grad = into_contiguous(grad);
-        let (order, offsets) = (into_contiguous(order), into_contiguous(offsets));
+        let (order, offsets, touched) = (into_contiguous(order), into_contiguous(offsets), into_contiguous(touched));
         let cols = grad.shape()[1];
-        let out = empty_device_dtype(grad.client.clone(), grad.device.clone(), Shape::new([rows, cols]), grad.dtype);
-        let units = rows * cols;
+        let compact = touched.shape().num_elements() > 0;
+        let (shape, client, device) = (Shape::new([rows, cols]), grad.client.clone(), grad.device.clone());
+        // A compact transpose writes only the rows it reads: the others are zeros.
+        let out = match compact {
+            true => zeros_client(client.clone(), device, shape, grad.dtype),
+            false => empty_device_dtype(client.clone(), device, shape, grad.dtype),
+        };
+        let units = match compact {
+            true => touched.shape().num_elements() * cols,
+            false => rows * cols,
+        };
         if units == 0 {
             return out;
         }
-        let client = grad.client.clone();
         let (cube_count, cube_dim) = one_per_value(&client, units);
         let dtypes = [storage(grad.dtype), storage(order.dtype)];
+        // The full form never reads `touched`: any bound buffer will do (not an empty one).
+        let touched = if compact { touched } else { offsets.clone() };
         sum_by_rows_kernel::launch(
             &client,
             cube_count,
@@ -421,8 +502,10 @@ mod cube_op {
             grad.into_tensor_arg(),
             order.into_tensor_arg(),
             offsets.into_tensor_arg(),
+            touched.into_tensor_arg(),
             out.clone().into_tensor_arg(),
             cols as u32,
+            compact,
             dtypes,
         );
         out
@@ -433,15 +516,15 @@ mod cube_op {
     struct GatherBackward;
 
     impl<B: GatherBackend> Backward<B, 1> for GatherBackward {
-        /// The transpose (`order`, `offsets`) and the table's rows.
-        type State = (IntTensor<B>, IntTensor<B>, usize);
+        /// The transpose (`order`, `offsets`, `touched`) and the table's rows.
+        type State = (IntTensor<B>, IntTensor<B>, IntTensor<B>, usize);
 
         fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _checkpointer: &mut Checkpointer) {
             let [node_x] = ops.parents;
             let grad = grads.consume::<B>(&ops.node);
-            let (order, offsets, rows) = ops.state;
+            let (order, offsets, touched, rows) = ops.state;
             if let Some(node) = node_x {
-                grads.register::<B>(node.id, B::sum_by_rows(grad, order, offsets, rows));
+                grads.register::<B>(node.id, B::sum_by_rows(grad, order, offsets, touched, rows));
             }
         }
     }
@@ -469,14 +552,17 @@ mod cube_op {
             idx: IntTensor<Self>,
             order: IntTensor<Self>,
             offsets: IntTensor<Self>,
+            touched: IntTensor<Self>,
         ) -> FloatTensor<Self> {
             let rows = x.shape()[0];
             match GatherBackward.prepare::<C>([x.node()]).compute_bound().stateful() {
                 OpsKind::Tracked(prep) => {
-                    let out = B::gather_rows(x.into_primitive(), idx, order.clone(), offsets.clone());
-                    prep.finish((order, offsets, rows), out)
+                    let out = B::gather_rows(x.into_primitive(), idx, order.clone(), offsets.clone(), touched.clone());
+                    prep.finish((order, offsets, touched, rows), out)
                 }
-                OpsKind::UnTracked(prep) => prep.finish(B::gather_rows(x.into_primitive(), idx, order, offsets)),
+                OpsKind::UnTracked(prep) => {
+                    prep.finish(B::gather_rows(x.into_primitive(), idx, order, offsets, touched))
+                }
             }
         }
 
@@ -484,10 +570,12 @@ mod cube_op {
             grad: FloatTensor<Self>,
             order: IntTensor<Self>,
             offsets: IntTensor<Self>,
+            touched: IntTensor<Self>,
             rows: usize,
         ) -> FloatTensor<Self> {
             // Only ever called inside a backward, on the inner backend.
-            <Self as AutodiffBackend>::from_inner(B::sum_by_rows(grad.into_primitive(), order, offsets, rows))
+            let out = B::sum_by_rows(grad.into_primitive(), order, offsets, touched, rows);
+            <Self as AutodiffBackend>::from_inner(out)
         }
 
         fn sum_runs(
@@ -566,6 +654,17 @@ mod graph_oracle {
         if ours.transpose.is_some() {
             assert!(grad[last..].iter().all(|&g| g == 0.0), "the row left out has no gradient");
         }
+        // The compact transpose, over an index that leaves two rows in three
+        // unread (they get zeros): select's values and gradient again.
+        let gappy: Vec<i32> = idx.iter().map(|r| r / 3 * 3).collect();
+        let compact = RowIndex::compact(indices(gappy.clone(), &dev), &gappy);
+        assert_eq!(compact.touched.is_some(), !is_host_memory(&dev), "the compact transpose is built on a GPU only");
+        let (out, grad) = run(&compact);
+        let (want_out, want_grad) = run(&RowIndex::plain(indices(gappy, &dev)));
+        assert!(out == want_out, "the forward is select's");
+        let worst = grad.iter().zip(&want_grad).fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(worst <= 1e-6 * scale, "compact: gradient off by {worst} of {scale}");
+        assert!((0..rows).filter(|r| r % 3 != 0).all(|r| grad[r * cols..(r + 1) * cols].iter().all(|&g| g == 0.0)));
     }
 
     /// Sums over runs of consecutive rows (one empty): `select_assign`'s
@@ -636,5 +735,14 @@ mod tests {
         let (order, offsets) = transpose_of(&[2, 0, 2, 5, 1, 0], 3);
         assert_eq!(offsets, vec![0, 2, 3, 5], "row 5 is beyond the table and left out");
         assert_eq!(order, vec![1, 5, 4, 0, 2]);
+    }
+
+    #[test]
+    fn the_compact_transpose_lists_only_the_rows_read() {
+        let (touched, order, offsets) = compact_transpose_of(&[7, 0, 7, -1, 3, 0]);
+        assert_eq!(touched, vec![0, 3, 7], "the negative entry is left out");
+        assert_eq!(offsets, vec![0, 2, 3, 5]);
+        assert_eq!(order, vec![1, 5, 4, 0, 2]);
+        assert_eq!(compact_transpose_of(&[]), (vec![], vec![], vec![0]));
     }
 }
