@@ -20,7 +20,8 @@ use refnpr::field::march::{self, MarchParams, Marcher};
 use refnpr::field::optim::{RmsStart, Rmsprop};
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
 use refnpr::scene::data::{self, procedural};
-use refnpr::stylize::config::{ColourNorm, Placement, RayKernel, StylizeConfig};
+use refnpr::stylize::colour_map::ColourMap;
+use refnpr::stylize::config::{ColourMapConfig, ColourNorm, Placement, RayKernel, StylizeConfig};
 use refnpr::stylize::field::{
     DeviceChunk, ShTv, StepRows, StyleField, chunked_gradient, chunks_gradient, gathered_gradient, picked_gradient,
     render_chunks, render_gathered,
@@ -29,6 +30,7 @@ use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::tcm::{StoredFeatures, Template};
 use refnpr::stylize::{Method, StepKind, StylizeJob, losses};
 use refnpr::tools::paint;
+use refnpr::util::image::Image;
 use refnpr::util::tensor::{floats, to_vec};
 use refnpr::vgg::{Vgg16, VggLayer, image_tensor};
 
@@ -661,11 +663,50 @@ fn stylizing_the_tiny_scene_moves_it_towards_its_stylized_twin() {
     }
 }
 
+/// The colour map tells a recolouring from a painting: every grade of
+/// `refnpr paint --grade` over a view of the procedural scene is explained
+/// (`ColourMap::explained`) at least as far as `[colour_map]
+/// recolour_explained` asks, and the painterly repaint (`refnpr paint`,
+/// strokes) and the scene's re-textured twin are not.
+#[test]
+fn a_graded_reference_is_a_recolouring_and_a_painted_one_is_not() {
+    let t = TempDir::new("explained");
+    let scene = t.path().join("scene");
+    let opts =
+        procedural::SceneOptions { seed: 2, size: 96, num_train: 2, num_val: 1, num_test: 1, environment: false };
+    procedural::write_scene(&scene, &opts).unwrap();
+    let photo = data::load(&scene, &Default::default()).unwrap();
+    let twin = data::load(&scene.join("stylized"), &Default::default()).unwrap();
+    let view = &photo.train[0];
+    let [w, h] = [view.camera.intrinsics.width as usize, view.camera.intrinsics.height as usize];
+    let cfg = ColourMapConfig::default();
+    let explained = |style: Vec<f32>| {
+        let (content, style) = (Image::new(w, h, view.rgb.clone()), Image::new(w, h, style));
+        ColourMap::fit(&[(&content, &style)], &cfg, photo.background).explained(&[(&content, &style)])
+    };
+    let mut found = Vec::new();
+    for grade in [paint::Grade::Hue, paint::Grade::Materials, paint::Grade::TealOrange] {
+        let e = explained(grade.image(&view.rgb));
+        found.push(format!("{grade:?} {e:.3}"));
+        assert!(e >= cfg.recolour_explained, "{grade:?} explained {e}");
+    }
+    for (name, style) in
+        [("painterly", paint::painterly(&view.rgb, w, h, 7)), ("the re-textured twin", twin.train[0].rgb.clone())]
+    {
+        let e = explained(style);
+        found.push(format!("{name} {e:.3}"));
+        assert!(e < cfg.recolour_explained, "{name} explained {e}");
+    }
+    eprintln!("explained: {}", found.join(", "));
+}
+
 /// A recolouring reference (training view 0 colour-graded, hues rotated)
 /// reaches the surfaces it never sees through the colour map: with it (the
-/// defaults: the refit field recoloured, L_color's targets mapped) the test
-/// views are closer to the graded scene than without it (the paper). And the refit (no SH TV by default) ends no further from
-/// the photos than it starts.
+/// refit field recoloured, L_color's targets mapped) the test views are
+/// closer to the graded scene than without it (the paper), and closer
+/// still when its fit makes it a recolouring (the defaults: L_color weighs
+/// more, over smaller patches). And the refit (no SH TV by default) ends no
+/// further from the photos than it starts.
 #[test]
 fn a_recolouring_reaches_the_unseen_side_through_the_colour_map() {
     let t = TempDir::new("colour-map");
@@ -678,19 +719,29 @@ fn a_recolouring_reaches_the_unseen_side_through_the_colour_map() {
     std::fs::write(case.join("reference.toml"), "[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\n").unwrap();
     let twin = data::load(&graded, &Default::default()).unwrap();
     let mut psnrs = Vec::new();
-    for on in [false, true] {
+    // (colour map on, its recolouring gate open)
+    for (on, gate) in [(false, false), (true, false), (true, true)] {
         let mut config = quick_config(1);
         (config.colour_map.init_field, config.colour_map.colour_targets) = (on, on);
-        let out = t.path().join(format!("style-{on}"));
+        if !gate {
+            config.colour_map.recolour_explained = 2.0;
+        }
+        let out = t.path().join(format!("style-{on}-{gate}"));
         let report = run_stylize(&job(&photo, &case, &out, config, Method::RefNpr), &refnpr::Quiet).unwrap();
         let refit: Vec<f32> = report.curve.iter().filter(|p| p.phase == StepKind::Refit).map(|p| p.total).collect();
         let last = &refit[refit.len() - refit.len().min(3)..];
         let tail = last.iter().sum::<f32>() / last.len() as f32;
         assert!(tail <= refit[0], "the refit ends at MSE {tail} from {}", refit[0]);
+        let map = report.colour_map;
+        assert_eq!(map.map(|m| m.recolouring), on.then_some(gate), "{map:?}");
         psnrs.push(test_psnr(&out, &twin));
     }
-    eprintln!("PSNR to the graded scene: colour map off {:.2} dB, on {:.2} dB", psnrs[0], psnrs[1]);
+    eprintln!(
+        "PSNR to the graded scene: colour map off {:.2} dB, on {:.2} dB, a recolouring {:.2} dB",
+        psnrs[0], psnrs[1], psnrs[2]
+    );
     assert!(psnrs[1] >= psnrs[0] + 1.0, "colour map on {:.2} dB vs off {:.2} dB", psnrs[1], psnrs[0]);
+    assert!(psnrs[2] > psnrs[1], "a recolouring {:.2} dB vs the map's plain weight {:.2} dB", psnrs[2], psnrs[1]);
 }
 
 /// A scene in a textured far environment, its fit with a far background:

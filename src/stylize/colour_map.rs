@@ -99,6 +99,28 @@ impl ColourMap {
         std::array::from_fn(|k| (c[k] + off[k]).clamp(0.0, 1.0))
     }
 
+    /// How much of the painting's change the map accounts for over the scene
+    /// pixels of `pairs` (content render, painted reference):
+    /// `1 - sum |S - map(C)|^2 / sum |S - C|^2`. A recolouring (every photo
+    /// colour painted one way) is explained almost whole; painted strokes,
+    /// which put many colours over one photo colour, are not. 1 when the
+    /// painting changes nothing; below 0 when the map makes it worse.
+    pub fn explained(&self, pairs: &[(&Image, &Image)]) -> f32 {
+        let (mut change, mut left) = (0.0f64, 0.0f64);
+        for (content, style) in pairs {
+            for (c, s) in content.rgb.chunks_exact(3).zip(style.rgb.chunks_exact(3)) {
+                let c = [c[0], c[1], c[2]];
+                if is_background(&c, self.background) {
+                    continue;
+                }
+                let m = self.apply(c);
+                change += (0..3).map(|k| f64::from(s[k] - c[k]).powi(2)).sum::<f64>();
+                left += (0..3).map(|k| f64::from(s[k] - m[k]).powi(2)).sum::<f64>();
+            }
+        }
+        if change <= 0.0 { 1.0 } else { (1.0 - left / change) as f32 }
+    }
+
     /// The map applied to every pixel of an image but the background's.
     pub fn apply_image(&self, img: &Image) -> Image {
         let rgb = img
@@ -137,6 +159,39 @@ mod tests {
         // A slightly different yellow goes the same way; red was never painted and stays.
         assert!(close(map.apply([0.85, 0.72, 0.15]), blue, 0.15), "{:?}", map.apply([0.85, 0.72, 0.15]));
         assert!(close(map.apply(red), red, 0.02), "red -> {:?}", map.apply(red));
+    }
+
+    /// A recolouring is explained almost whole; strokes of two colours
+    /// painted over one photo colour are not (the map can only give their
+    /// mean); a reference that changes nothing is explained whole.
+    #[test]
+    fn a_recolouring_is_explained_and_strokes_are_not() {
+        let (yellow, grey) = ([0.9, 0.75, 0.1], [0.4, 0.4, 0.4]);
+        let (blue, teal, red) = ([0.1, 0.3, 0.9], [0.2, 0.5, 0.5], [0.8, 0.1, 0.1]);
+        let cfg = ColourMapConfig::default();
+        let content = image(&[&[yellow; 60][..], &[grey; 60]].concat());
+        let recoloured = image(&[&[blue; 60][..], &[teal; 60]].concat());
+        let map = ColourMap::fit(&[(&content, &recoloured)], &cfg, [1.0; 3]);
+        let explained = map.explained(&[(&content, &recoloured)]);
+        assert!(explained > 0.95, "a recolouring: {explained}");
+        // Every other pixel of each material painted red instead: strokes.
+        let strokes: Vec<[f32; 3]> = (0..120)
+            .map(|i| {
+                if i % 2 == 0 {
+                    red
+                } else if i < 60 {
+                    blue
+                } else {
+                    teal
+                }
+            })
+            .collect();
+        let stroked = image(&strokes);
+        let map = ColourMap::fit(&[(&content, &stroked)], &cfg, [1.0; 3]);
+        let explained = map.explained(&[(&content, &stroked)]);
+        assert!((0.0..0.7).contains(&explained), "strokes: {explained}");
+        let same = ColourMap::fit(&[(&content, &content)], &cfg, [1.0; 3]);
+        assert_eq!(same.explained(&[(&content, &content)]), 1.0);
     }
 
     #[test]

@@ -297,6 +297,26 @@ pub struct ColourMapConfig {
     /// matched targets). Smaller patches hold colours closer to the map on
     /// every surface; larger ones leave more room for painted texture.
     pub target_patch: usize,
+    /// A reference whose map explains at least this share of its
+    /// painting's change (`ColourMap::explained`) is a recolouring: its
+    /// colours are the map's on every surface, so the map is fitted again
+    /// sharper (`recolour_sigma`, `recolour_prior_pixels`) and L_color
+    /// weighs `recolour_weight` over `recolour_patch`-pixel patches instead
+    /// of `[loss] colour` over `target_patch`. Painted strokes, which the
+    /// map explains only in part, keep the room L_feat needs for texture.
+    /// Above 1: never.
+    pub recolour_explained: f32,
+    /// λ_c of a recolouring's colour-map targets.
+    pub recolour_weight: f32,
+    /// Pixels per side of a recolouring's target patches.
+    pub recolour_patch: usize,
+    /// `sigma` of a recolouring's map: a grade is a function of colour, so
+    /// nearby colours need not be mixed as much.
+    pub recolour_sigma: f32,
+    /// `prior_pixels` of a recolouring's map: a colour the reference shows
+    /// in a few pixels is still graded as they say (lego's far side shows
+    /// colours its reference view barely does).
+    pub recolour_prior_pixels: f32,
     /// Bins per colour axis of the fitted offsets.
     pub bins: usize,
     /// Width (colour units, [0, 1] per channel) of the Gaussian that mixes nearby bins.
@@ -314,6 +334,11 @@ impl Default for ColourMapConfig {
             in_smooth_update: false,
             mapped_content: false,
             target_patch: 16,
+            recolour_explained: 0.85,
+            recolour_weight: 20.0,
+            recolour_patch: 4,
+            recolour_sigma: 0.06,
+            recolour_prior_pixels: 0.25,
             bins: 16,
             sigma: 0.08,
             prior_pixels: 4.0,
@@ -322,19 +347,35 @@ impl Default for ColourMapConfig {
 }
 
 impl ColourMapConfig {
+    /// The map's settings for a recolouring (`recolour_sigma`, `recolour_prior_pixels`).
+    pub fn recolouring(&self) -> ColourMapConfig {
+        ColourMapConfig { sigma: self.recolour_sigma, prior_pixels: self.recolour_prior_pixels, ..self.clone() }
+    }
+
     pub fn validate(&self) -> Result<()> {
         ensure!(
             (1..=64).contains(&self.target_patch),
             "colour_map.target_patch must be in 1..=64 pixels, got {}",
             self.target_patch
         );
-        ensure!((2..=64).contains(&self.bins), "colour_map.bins must be in 2..=64, got {}", self.bins);
-        ensure!(self.sigma.is_finite() && self.sigma > 0.0, "colour_map.sigma must be positive, got {}", self.sigma);
         ensure!(
-            self.prior_pixels.is_finite() && self.prior_pixels >= 0.0,
-            "colour_map.prior_pixels must be >= 0, got {}",
-            self.prior_pixels
+            (1..=64).contains(&self.recolour_patch),
+            "colour_map.recolour_patch must be in 1..=64 pixels, got {}",
+            self.recolour_patch
         );
+        ensure!(
+            self.recolour_explained.is_finite() && self.recolour_weight.is_finite() && self.recolour_weight >= 0.0,
+            "colour_map.recolour_explained must be finite and colour_map.recolour_weight >= 0, got {} and {}",
+            self.recolour_explained,
+            self.recolour_weight
+        );
+        for (key, sigma, prior) in
+            [("", self.sigma, self.prior_pixels), ("recolour_", self.recolour_sigma, self.recolour_prior_pixels)]
+        {
+            ensure!(sigma.is_finite() && sigma > 0.0, "colour_map.{key}sigma must be positive, got {sigma}");
+            ensure!(prior.is_finite() && prior >= 0.0, "colour_map.{key}prior_pixels must be >= 0, got {prior}");
+        }
+        ensure!((2..=64).contains(&self.bins), "colour_map.bins must be in 2..=64, got {}", self.bins);
         Ok(())
     }
 }

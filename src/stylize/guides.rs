@@ -47,8 +47,9 @@ pub(crate) fn guidance(
 pub(crate) enum ColourSource<'m> {
     /// The TCM-matched reference patches (the paper).
     Matched,
-    /// The colour map over the view's own content render.
-    Mapped(&'m ColourMap),
+    /// The colour map over the view's own content render, compared in
+    /// `patch`-pixel patch means with weight `weight`.
+    Mapped { map: &'m ColourMap, patch: usize, weight: f32 },
 }
 
 /// What the content term's fixed features are taken of.
@@ -93,18 +94,21 @@ pub(crate) fn guides(
         let matches = template.map(|t| t.matches(&raw, st.cfg().search_chunk)).unwrap_or_default();
         // The content render through the colour map, once, for whichever of the two uses it.
         let mapped = match (keep_content, colour) {
-            (Some(Content::Mapped(map)), _) | (_, Some(ColourSource::Mapped(map))) => Some(map.apply_image(&content)),
+            (Some(Content::Mapped(map)), _) | (_, Some(ColourSource::Mapped { map, .. })) => {
+                Some(map.apply_image(&content))
+            }
             _ => None,
         };
         let l = &st.cfg().loss;
         let white = (l.colour_white_on == WhiteOn::Content).then_some(l.colour_white);
         let colour = match (template, colour_desc, colour) {
-            (Some(t), Some(d), _) => {
-                Some(t.colour_targets(d, &content, l.colour_max_distance, white, st.cfg().search_chunk))
-            }
-            (Some(_), None, Some(ColourSource::Mapped(_))) => mapped
+            (Some(t), Some(d), _) => Some(ColourTargets {
+                weight: l.colour,
+                ..t.colour_targets(d, &content, l.colour_max_distance, white, st.cfg().search_chunk)
+            }),
+            (Some(_), None, Some(ColourSource::Mapped { patch, weight, .. })) => mapped
                 .as_ref()
-                .map(|m| ColourTargets::from_mapped(&content, m, white, st.cfg().colour_map.target_patch, &st.device)),
+                .map(|m| ColourTargets { weight, ..ColourTargets::from_mapped(&content, m, white, patch, &st.device) }),
             _ => None,
         };
         matched += colour.as_ref().map_or(0.0, |c| c.matched_fraction / n as f32);

@@ -152,6 +152,18 @@ pub struct SampleCacheReport {
     pub cells: usize,
 }
 
+/// The references' colour map in `stylize.json`.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct ColourMapReport {
+    /// Reference pixels it was fitted on.
+    pub pixels: usize,
+    /// `ColourMap::explained` over those pixels.
+    pub explained: f32,
+    /// At least `[colour_map] recolour_explained`: L_color took the
+    /// recolouring's weight and patches.
+    pub recolouring: bool,
+}
+
 /// `STYLE_RUN/stylize.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct StylizeReport {
@@ -167,6 +179,9 @@ pub struct StylizeReport {
     pub registered_pixels: usize,
     pub registered_fraction: f32,
     pub colour_matched_fraction: f32,
+    /// Ref-NPR with `[colour_map]` on: the references' colour map, how much
+    /// of the painting it explains, and whether that made it a recolouring.
+    pub colour_map: Option<ColourMapReport>,
     /// ARF: the affine recolouring applied to the photos before the refit.
     pub colour_transfer: Option<ColourTransfer>,
     /// ARF with `arf.post_transfer`: the recolouring applied to the field after the image epochs.

@@ -28,7 +28,7 @@ use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::step::{Guidance, StyleStep};
 use crate::stylize::styles::{arf_colour_transfer, is_background, read_styles, style_colour_stats};
 use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
-use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob, StylizeReport};
+use crate::stylize::{ColourMapReport, CurvePoint, Method, StepKind, StylizeJob, StylizeReport};
 use crate::util::costs::Work;
 use crate::util::diverged;
 use crate::util::files;
@@ -136,6 +136,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         registered_pixels: st.step.samples.registered.len(),
         registered_fraction,
         colour_matched_fraction: colour_matched,
+        colour_map: st.colour_map.as_ref().map(|f| f.report),
         colour_transfer: st.colour_transfer,
         post_colour_transfer,
         total_seconds: started.elapsed().as_secs_f64(),
@@ -166,6 +167,25 @@ fn render_test_views(job: &StylizeJob, dataset: &Dataset, progress: &dyn Progres
     Ok(())
 }
 
+/// The references' colour map and what its fit says of the case.
+struct FittedMap {
+    map: ColourMap,
+    report: ColourMapReport,
+}
+
+impl FittedMap {
+    /// L_color's targets through the map: a recolouring's weight and
+    /// patches, or `[loss] colour` over `target_patch`-pixel patches.
+    fn targets(&self, cfg: &StylizeConfig) -> ColourSource<'_> {
+        let c = &cfg.colour_map;
+        let (patch, weight) = match self.report.recolouring {
+            true => (c.recolour_patch, c.recolour_weight),
+            false => (c.target_patch, cfg.loss.colour),
+        };
+        ColourSource::Mapped { map: &self.map, patch, weight }
+    }
+}
+
 /// A stylization in progress: its step, the loss curve so far, and what
 /// its resume points hold.
 struct Stylization<'a> {
@@ -174,7 +194,7 @@ struct Stylization<'a> {
     /// ARF: the photos are recoloured with this before the refit.
     colour_transfer: Option<ColourTransfer>,
     /// Ref-NPR with `[colour_map]` on: the references' colour mapping.
-    colour_map: Option<ColourMap>,
+    colour_map: Option<FittedMap>,
     curve: Vec<CurvePoint>,
     /// The field after the refit and when the smooth update began: the
     /// guides were built from them, so a resumed run rebuilds them from these.
@@ -277,15 +297,33 @@ impl<'a> Stylization<'a> {
         let contents: Vec<Image> = (0..styles.len()).map(|r| self.step.render_reference(r)).collect();
         let pairs: Vec<(&Image, &Image)> = contents.iter().zip(styles).collect();
         let map = ColourMap::fit(&pairs, cfg, self.step.background());
-        progress.event(Event::Detail(format!("colour map fitted on {} reference pixels", map.pixels)));
-        self.colour_map = Some(map);
+        let explained = map.explained(&pairs);
+        let report =
+            ColourMapReport { pixels: map.pixels, explained, recolouring: explained >= cfg.recolour_explained };
+        let map = match report.recolouring {
+            true => ColourMap::fit(&pairs, &cfg.recolouring(), self.step.background()),
+            false => map,
+        };
+        progress.info(format!(
+            "colour map fitted on {} reference pixels; it explains {:.0} % of the painting's change{}",
+            map.pixels,
+            100.0 * explained,
+            match report.recolouring {
+                true => format!(
+                    ": a recolouring (the map fitted again sharper, L_color {} over {}-pixel patches)",
+                    cfg.recolour_weight, cfg.recolour_patch
+                ),
+                false => String::new(),
+            }
+        ));
+        self.colour_map = Some(FittedMap { map, report });
     }
 
     /// `colour_map.init_field`: the refit field's colours through the map
     /// (after the first guides, whose content renders stay the photos').
     fn recolour_field(&mut self) {
-        if let (true, Some(map)) = (self.job.config.colour_map.init_field, &self.colour_map) {
-            self.step.field.apply_colour_map(map);
+        if let (true, Some(fitted)) = (self.job.config.colour_map.init_field, &self.colour_map) {
+            self.step.field.apply_colour_map(&fitted.map);
         }
     }
 
@@ -303,11 +341,11 @@ impl<'a> Stylization<'a> {
         let views = self.step.dataset().train.len();
         let keep =
             keeps_content(self.job).then_some(match (&self.colour_map, self.job.config.colour_map.mapped_content) {
-                (Some(map), true) => Content::Mapped(map),
+                (Some(fitted), true) => Content::Mapped(&fitted.map),
                 _ => Content::Render,
             });
         let source = colour.then_some(match (&self.colour_map, self.job.config.colour_map.colour_targets) {
-            (Some(map), true) => ColourSource::Mapped(map),
+            (Some(fitted), true) => fitted.targets(&self.job.config),
             _ => ColourSource::Matched,
         });
         let (guidance, matched) =

@@ -619,7 +619,7 @@ impl<'a> StyleStep<'a> {
                     };
                     let loss = losses::colour_loss(patches, c.target.clone(), mask, l.colour_norm);
                     accumulate(&mut parts.colour, &loss);
-                    total = total + loss * l.colour;
+                    total = total + loss * c.weight;
                 }
             }
             Method::Arf => {

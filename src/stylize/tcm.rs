@@ -204,6 +204,7 @@ impl Template {
             mask: floats(mask, [n, 1], &device),
             matched_fraction: matched as f32 / n.max(1) as f32,
             patch: COLOUR_PATCH,
+            weight: 1.0,
         }
     }
 }
@@ -221,6 +222,9 @@ pub struct ColourTargets {
     /// Pixels per target patch side: `COLOUR_PATCH` (relu5) for matched
     /// targets, `[colour_map] target_patch` for the colour map's.
     pub patch: usize,
+    /// λ_c, the weight of L_color on these targets (set by the guides:
+    /// `[loss] colour`, or the colour map's weight for a recolouring).
+    pub weight: f32,
 }
 
 /// Per `patch`-sized block of `content`: whether its mean is near white
@@ -271,6 +275,7 @@ impl ColourTargets {
             mask: floats(mask, [n, 1], device),
             matched_fraction: matched as f32 / n.max(1) as f32,
             patch,
+            weight: 1.0,
         }
     }
 
