@@ -12,7 +12,7 @@
 //! applied to each view's content render it gives L_color targets that do
 //! not depend on which reference patch a view happens to match.
 
-use crate::stylize::config::ColourMapConfig;
+use crate::stylize::config::{ColourMapConfig, MapPrior};
 use crate::stylize::styles::is_background;
 use crate::util::image::Image;
 
@@ -28,6 +28,34 @@ pub struct ColourMap {
     background: [f32; 3],
     /// Reference pixels the map was fitted on.
     pub pixels: usize,
+}
+
+/// The least-squares affine colour transform of the pairs' scene pixels:
+/// per painted channel `k`, the coefficients of (photo r, g, b, 1). None
+/// when the photo colours do not span colour space (a single colour, or
+/// colours along one line), where the fit would be arbitrary.
+fn affine_fit(pairs: &[(&Image, &Image)], background: [f32; 3]) -> Option<[[f64; 4]; 3]> {
+    let (mut xtx, mut xts, mut n) = ([[0.0f64; 4]; 4], [[0.0f64; 4]; 3], 0usize);
+    for (content, style) in pairs {
+        for (c, s) in content.rgb.chunks_exact(3).zip(style.rgb.chunks_exact(3)) {
+            if is_background(&[c[0], c[1], c[2]], background) {
+                continue;
+            }
+            let x = [f64::from(c[0]), f64::from(c[1]), f64::from(c[2]), 1.0];
+            for i in 0..4 {
+                (0..4).for_each(|j| xtx[i][j] += x[i] * x[j]);
+                (0..3).for_each(|k| xts[k][i] += x[i] * f64::from(s[k]));
+            }
+            n += 1;
+        }
+    }
+    let m = glam::DMat4::from_cols_array_2d(&xtx);
+    // Relative to the pixel count: the determinant of a well-spread set grows as n^4.
+    if n == 0 || m.determinant().abs() <= 1e-10 * (n as f64).powi(4) {
+        return None;
+    }
+    let inv = m.inverse();
+    Some(std::array::from_fn(|k| inv.mul_vec4(glam::DVec4::from_array(xts[k])).to_array()))
 }
 
 fn bin_of(c: f32, bins: usize) -> usize {
@@ -61,11 +89,22 @@ impl ColourMap {
             let (r, g, bl) = (i / (b * b), (i / b) % b, i % b);
             [r, g, bl].map(|x| (x as f32 + 0.5) / b as f32)
         };
+        let affine = match cfg.prior {
+            MapPrior::Unchanged => None,
+            MapPrior::Affine => affine_fit(pairs, background),
+        };
+        // The prior's offset at a colour: none, or the affine transform's (clamped as any painted colour).
+        let prior_offset = |p: [f32; 3]| -> [f64; 3] {
+            let Some(a) = &affine else { return [0.0; 3] };
+            let x = [f64::from(p[0]), f64::from(p[1]), f64::from(p[2]), 1.0];
+            std::array::from_fn(|k| (0..4).map(|j| a[k][j] * x[j]).sum::<f64>().clamp(0.0, 1.0) - x[k])
+        };
         let two_var = 2.0 * cfg.sigma * cfg.sigma;
         let offsets = (0..b * b * b)
             .map(|at| {
                 let p = centre(at);
-                let (mut sum, mut weight) = ([0.0f64; 3], f64::from(cfg.prior_pixels));
+                let prior = f64::from(cfg.prior_pixels);
+                let (mut sum, mut weight) = (prior_offset(p).map(|o| o * prior), prior);
                 for &i in &filled {
                     let q = centre(i);
                     let d2: f32 = (0..3).map(|k| (p[k] - q[k]).powi(2)).sum();
@@ -192,6 +231,31 @@ mod tests {
         assert!((0.0..0.7).contains(&explained), "strokes: {explained}");
         let same = ColourMap::fit(&[(&content, &content)], &cfg, [1.0; 3]);
         assert_eq!(same.explained(&[(&content, &content)]), 1.0);
+    }
+
+    /// A colour the reference never shows keeps its photo colour with the
+    /// "unchanged" prior, and takes the painting's affine transform with
+    /// the "affine" one (here red and blue swapped, exactly affine).
+    #[test]
+    fn the_affine_prior_carries_a_grade_to_colours_never_shown() {
+        let shown: Vec<[f32; 3]> =
+            (0..64).map(|i| [(i % 4) as f32 / 8.0, ((i / 4) % 4) as f32 / 8.0, (i / 16) as f32 / 8.0]).collect();
+        let swapped: Vec<[f32; 3]> = shown.iter().map(|c| [c[2], c[1], c[0]]).collect();
+        let content = image(&shown.iter().flat_map(|c| [*c; 10]).collect::<Vec<_>>());
+        let style = image(&swapped.iter().flat_map(|c| [*c; 10]).collect::<Vec<_>>());
+        let never = [0.9, 0.6, 0.75];
+        let fitted = |prior| {
+            let cfg = ColourMapConfig { sigma: 0.03, prior, ..ColourMapConfig::default() };
+            ColourMap::fit(&[(&content, &style)], &cfg, [1.0; 3]).apply(never)
+        };
+        let (kept, carried) = (fitted(MapPrior::Unchanged), fitted(MapPrior::Affine));
+        let close = |a: [f32; 3], b: [f32; 3]| a.iter().zip(b).all(|(x, y)| (x - y).abs() < 0.01);
+        assert!(close(kept, never), "unchanged prior: {kept:?}");
+        assert!(close(carried, [0.75, 0.6, 0.9]), "affine prior: {carried:?}");
+        // Colours the reference shows are its own either way.
+        let cfg = ColourMapConfig { sigma: 0.03, prior: MapPrior::Affine, ..ColourMapConfig::default() };
+        let map = ColourMap::fit(&[(&content, &style)], &cfg, [1.0; 3]);
+        assert!(close(map.apply(shown[21]), swapped[21]), "{:?}", map.apply(shown[21]));
     }
 
     #[test]

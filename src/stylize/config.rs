@@ -38,6 +38,20 @@ pub enum Placement {
 
 pub use crate::field::RayKernel;
 
+/// What the colour map shrinks a colour towards where the reference shows
+/// it in few pixels (`[colour_map] prior_pixels`' worth).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MapPrior {
+    /// No change: the photo colour stays.
+    Unchanged,
+    /// The painting's least-squares affine colour transform (photo colour
+    /// and 1 to painted colour, over the reference's scene pixels): a
+    /// grade's global part, which holds for colours the reference never
+    /// shows too.
+    Affine,
+}
+
 /// What L_color's squared error is averaged over.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -313,17 +327,19 @@ pub struct ColourMapConfig {
     /// `sigma` of a recolouring's map: a grade is a function of colour, so
     /// nearby colours need not be mixed as much.
     pub recolour_sigma: f32,
-    /// `prior_pixels` of a recolouring's map: a colour the reference shows
-    /// in a few pixels is still graded as they say (lego's far side shows
-    /// colours its reference view barely does).
-    pub recolour_prior_pixels: f32,
+    /// `prior` of a recolouring's map: lego's far side shows colours its
+    /// reference view barely does, and a grade's affine part carries to them.
+    pub recolour_prior: MapPrior,
     /// Bins per colour axis of the fitted offsets.
     pub bins: usize,
     /// Width (colour units, [0, 1] per channel) of the Gaussian that mixes nearby bins.
     pub sigma: f32,
-    /// Pixels' worth of "no change" mixed into every colour's mean offset:
-    /// colours with fewer nearby reference pixels than this move less.
+    /// Pixels' worth of the `prior` mixed into every colour's mean offset:
+    /// colours with fewer nearby reference pixels than this move more as
+    /// the prior says.
     pub prior_pixels: f32,
+    /// What those pixels say: no change, or the painting's affine transform.
+    pub prior: MapPrior,
 }
 
 impl Default for ColourMapConfig {
@@ -337,19 +353,20 @@ impl Default for ColourMapConfig {
             recolour_explained: 0.85,
             recolour_weight: 20.0,
             recolour_patch: 4,
-            recolour_sigma: 0.06,
-            recolour_prior_pixels: 0.25,
+            recolour_sigma: 0.03,
+            recolour_prior: MapPrior::Affine,
             bins: 16,
             sigma: 0.08,
             prior_pixels: 4.0,
+            prior: MapPrior::Unchanged,
         }
     }
 }
 
 impl ColourMapConfig {
-    /// The map's settings for a recolouring (`recolour_sigma`, `recolour_prior_pixels`).
+    /// The map's settings for a recolouring (`recolour_sigma`, `recolour_prior`).
     pub fn recolouring(&self) -> ColourMapConfig {
-        ColourMapConfig { sigma: self.recolour_sigma, prior_pixels: self.recolour_prior_pixels, ..self.clone() }
+        ColourMapConfig { sigma: self.recolour_sigma, prior: self.recolour_prior, ..self.clone() }
     }
 
     pub fn validate(&self) -> Result<()> {
@@ -369,12 +386,14 @@ impl ColourMapConfig {
             self.recolour_explained,
             self.recolour_weight
         );
-        for (key, sigma, prior) in
-            [("", self.sigma, self.prior_pixels), ("recolour_", self.recolour_sigma, self.recolour_prior_pixels)]
-        {
-            ensure!(sigma.is_finite() && sigma > 0.0, "colour_map.{key}sigma must be positive, got {sigma}");
-            ensure!(prior.is_finite() && prior >= 0.0, "colour_map.{key}prior_pixels must be >= 0, got {prior}");
+        for (key, sigma) in [("sigma", self.sigma), ("recolour_sigma", self.recolour_sigma)] {
+            ensure!(sigma.is_finite() && sigma > 0.0, "colour_map.{key} must be positive, got {sigma}");
         }
+        ensure!(
+            self.prior_pixels.is_finite() && self.prior_pixels >= 0.0,
+            "colour_map.prior_pixels must be >= 0, got {}",
+            self.prior_pixels
+        );
         ensure!((2..=64).contains(&self.bins), "colour_map.bins must be in 2..=64, got {}", self.bins);
         Ok(())
     }
