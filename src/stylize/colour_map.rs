@@ -36,18 +36,13 @@ pub struct ColourMap {
 /// colours along one line), where the fit would be arbitrary.
 fn affine_fit(pairs: &[(&Image, &Image)], background: [f32; 3]) -> Option<[[f64; 4]; 3]> {
     let (mut xtx, mut xts, mut n) = ([[0.0f64; 4]; 4], [[0.0f64; 4]; 3], 0usize);
-    for (content, style) in pairs {
-        for (c, s) in content.rgb.chunks_exact(3).zip(style.rgb.chunks_exact(3)) {
-            if is_background(&[c[0], c[1], c[2]], background) {
-                continue;
-            }
-            let x = [f64::from(c[0]), f64::from(c[1]), f64::from(c[2]), 1.0];
-            for i in 0..4 {
-                (0..4).for_each(|j| xtx[i][j] += x[i] * x[j]);
-                (0..3).for_each(|k| xts[k][i] += x[i] * f64::from(s[k]));
-            }
-            n += 1;
+    for (c, s) in scene_pixels(pairs, background) {
+        let x = [f64::from(c[0]), f64::from(c[1]), f64::from(c[2]), 1.0];
+        for i in 0..4 {
+            (0..4).for_each(|j| xtx[i][j] += x[i] * x[j]);
+            (0..3).for_each(|k| xts[k][i] += x[i] * f64::from(s[k]));
         }
+        n += 1;
     }
     let m = glam::DMat4::from_cols_array_2d(&xtx);
     // Relative to the pixel count: the determinant of a well-spread set grows as n^4.
@@ -56,6 +51,23 @@ fn affine_fit(pairs: &[(&Image, &Image)], background: [f32; 3]) -> Option<[[f64;
     }
     let inv = m.inverse();
     Some(std::array::from_fn(|k| inv.mul_vec4(glam::DVec4::from_array(xts[k])).to_array()))
+}
+
+/// The (content, painted) colour pairs of `pairs`' pixels whose content
+/// colour is not the `background`: what the map is fitted on and scored on.
+fn scene_pixels<'a>(
+    pairs: &'a [(&Image, &Image)],
+    background: [f32; 3],
+) -> impl Iterator<Item = ([f32; 3], [f32; 3])> + 'a {
+    pairs.iter().flat_map(move |(content, style)| {
+        assert_eq!(content.rgb.len(), style.rgb.len(), "a reference and its content render differ in size");
+        content
+            .rgb
+            .chunks_exact(3)
+            .zip(style.rgb.chunks_exact(3))
+            .map(|(c, s)| ([c[0], c[1], c[2]], [s[0], s[1], s[2]]))
+            .filter(move |(c, _)| !is_background(c, background))
+    })
 }
 
 fn bin_of(c: f32, bins: usize) -> usize {
@@ -71,18 +83,11 @@ impl ColourMap {
         let mut sums = vec![[0.0f64; 3]; b * b * b];
         let mut counts = vec![0.0f64; b * b * b];
         let mut pixels = 0;
-        for (content, style) in pairs {
-            assert_eq!(content.rgb.len(), style.rgb.len(), "a reference and its content render differ in size");
-            for (c, s) in content.rgb.chunks_exact(3).zip(style.rgb.chunks_exact(3)) {
-                let c = [c[0], c[1], c[2]];
-                if is_background(&c, background) {
-                    continue;
-                }
-                let i = (bin_of(c[0], b) * b + bin_of(c[1], b)) * b + bin_of(c[2], b);
-                (0..3).for_each(|k| sums[i][k] += f64::from(s[k] - c[k]));
-                counts[i] += 1.0;
-                pixels += 1;
-            }
+        for (c, s) in scene_pixels(pairs, background) {
+            let i = (bin_of(c[0], b) * b + bin_of(c[1], b)) * b + bin_of(c[2], b);
+            (0..3).for_each(|k| sums[i][k] += f64::from(s[k] - c[k]));
+            counts[i] += 1.0;
+            pixels += 1;
         }
         let filled: Vec<usize> = (0..counts.len()).filter(|&i| counts[i] > 0.0).collect();
         let centre = |i: usize| {
@@ -100,10 +105,10 @@ impl ColourMap {
             std::array::from_fn(|k| (0..4).map(|j| a[k][j] * x[j]).sum::<f64>().clamp(0.0, 1.0) - x[k])
         };
         let two_var = 2.0 * cfg.sigma * cfg.sigma;
+        let prior = f64::from(cfg.prior_pixels);
         let offsets = (0..b * b * b)
             .map(|at| {
                 let p = centre(at);
-                let prior = f64::from(cfg.prior_pixels);
                 let (mut sum, mut weight) = (prior_offset(p).map(|o| o * prior), prior);
                 for &i in &filled {
                     let q = centre(i);
@@ -146,16 +151,10 @@ impl ColourMap {
     /// painting changes nothing; below 0 when the map makes it worse.
     pub fn explained(&self, pairs: &[(&Image, &Image)]) -> f32 {
         let (mut change, mut left) = (0.0f64, 0.0f64);
-        for (content, style) in pairs {
-            for (c, s) in content.rgb.chunks_exact(3).zip(style.rgb.chunks_exact(3)) {
-                let c = [c[0], c[1], c[2]];
-                if is_background(&c, self.background) {
-                    continue;
-                }
-                let m = self.apply(c);
-                change += (0..3).map(|k| f64::from(s[k] - c[k]).powi(2)).sum::<f64>();
-                left += (0..3).map(|k| f64::from(s[k] - m[k]).powi(2)).sum::<f64>();
-            }
+        for (c, s) in scene_pixels(pairs, self.background) {
+            let m = self.apply(c);
+            change += (0..3).map(|k| f64::from(s[k] - c[k]).powi(2)).sum::<f64>();
+            left += (0..3).map(|k| f64::from(s[k] - m[k]).powi(2)).sum::<f64>();
         }
         if change <= 0.0 { 1.0 } else { (1.0 - left / change) as f32 }
     }

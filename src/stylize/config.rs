@@ -314,7 +314,7 @@ pub struct ColourMapConfig {
     /// A reference whose map explains at least this share of its
     /// painting's change (`ColourMap::explained`) is a recolouring: its
     /// colours are the map's on every surface, so the map is fitted again
-    /// sharper (`recolour_sigma`, `recolour_prior_pixels`) and L_color
+    /// sharper (`recolour_sigma`, `recolour_prior`) and L_color
     /// weighs `recolour_weight` over `recolour_patch`-pixel patches instead
     /// of `[loss] colour` over `target_patch`. Painted strokes, which the
     /// map explains only in part, keep the room L_feat needs for texture.

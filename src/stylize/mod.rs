@@ -159,8 +159,8 @@ pub struct ColourMapReport {
     pub pixels: usize,
     /// `ColourMap::explained` over those pixels.
     pub explained: f32,
-    /// At least `[colour_map] recolour_explained`: L_color took the
-    /// recolouring's weight and patches.
+    /// At least `[colour_map] recolour_explained`: the map was fitted again
+    /// with the recolouring's settings and L_color took its weight and patches.
     pub recolouring: bool,
 }
 
