@@ -559,6 +559,45 @@ fn the_host_training_step_matches_the_graph_step() {
     assert_eq!(host.grid.density_cpu, to_vec(host.grid.density.clone()), "the host mirror follows the grid");
 }
 
+/// `ray_kernel = "unfused"`, the Burn graph without the fused compositing
+/// kernel (its fallback on a GPU), trains as `graph` does: on wgpu it is
+/// the kernel against the graph, on the CPU backends the same graph twice.
+/// The launch counter sees the difference: on a GPU the fused step launches
+/// fewer kernels (lego at 256³: 50 against 137, docs/performance.md); the
+/// CPU backends launch none.
+#[test]
+fn the_unfused_graph_step_trains_as_the_fused_one() {
+    use refnpr::field::RayKernel;
+    use refnpr::util::transfer;
+    let t = TempDir::new("unfused-step");
+    let ds = tiny_scene_in(&t.path().join("scene"), true);
+    let trainer = |kernel| {
+        let mut cfg = with_far(tiny_config(40), true);
+        cfg.ray_kernel = kernel;
+        (cfg.optim.tv_fraction, cfg.optim.tv_density, cfg.optim.tv_sh) = (0.5, 1e-2, 1e-1);
+        let mut tr = Trainer::new(&ds, cfg, &common::device()).unwrap();
+        let losses: Vec<f32> = (0..3).map(|_| tr.step_once().unwrap().mse).collect();
+        let before = transfer::counted();
+        tr.step_once().unwrap();
+        (tr, losses, transfer::counted().since(before).launches)
+    };
+    let ((fused, fused_losses, fused_launches), (unfused, unfused_losses, unfused_launches)) =
+        (trainer(RayKernel::Graph), trainer(RayKernel::Unfused));
+    println!(
+        "losses: fused {fused_losses:?} unfused {unfused_losses:?}; launches a step {fused_launches} vs {unfused_launches}"
+    );
+    for (a, b) in fused_losses.iter().zip(&unfused_losses) {
+        assert!((a - b).abs() <= common::tol(1e-4) * b, "step losses {fused_losses:?} vs {unfused_losses:?}");
+    }
+    assert_fields_agree(&fused, &unfused);
+    match refnpr::util::tensor::is_host_memory(&common::device()) {
+        true => assert_eq!((fused_launches, unfused_launches), (0, 0), "the CPU backends launch no kernels"),
+        false => {
+            assert!(0 < fused_launches && fused_launches < unfused_launches, "{fused_launches} vs {unfused_launches}")
+        }
+    }
+}
+
 /// Two fits' grids and RMSprop averages agree up to the order of
 /// floating-point sums: the mean difference and 99 % of the coefficients
 /// (RMSprop divides each gradient by its own running size, so a

@@ -79,10 +79,10 @@ impl BatchTensors {
     }
 
     /// As [`for_gradients`](Self::for_gradients), for the Burn graph on any
-    /// device: the oracle of the fused kernel's tests.
-    #[cfg(test)]
-    pub(crate) fn for_graph(b: &SampleBatch, device: &Device) -> Self {
-        Self::upload(b, None, true, Renderer::Graph, device)
+    /// device, without the fused kernel (`ray_kernel = "unfused"`): the
+    /// oracle of the fused kernel's tests and its fallback on a GPU.
+    pub fn for_unfused_gradients(b: &SampleBatch, remap: Option<&dyn Fn(i32) -> i32>, device: &Device) -> Self {
+        Self::upload(b, remap, true, Renderer::Graph, device)
     }
 
     fn upload(
@@ -333,7 +333,7 @@ mod graph_oracle {
         let fused = BatchTensors::for_gradients(&batch, None, &dev);
         let on_gpu = !is_host_memory(&dev);
         assert_eq!(matches!(fused.layout, RayLayout::Runs(_)), on_gpu, "the kernel is the GPU's path");
-        let (ours, theirs) = (run(fused), run(BatchTensors::for_graph(&batch, &dev)));
+        let (ours, theirs) = (run(fused), run(BatchTensors::for_unfused_gradients(&batch, None, &dev)));
         for (name, a, b) in [
             ("outputs", &ours.0, &theirs.0),
             ("density gradient", &ours.1, &theirs.1),

@@ -31,8 +31,15 @@ pub enum RayKernel {
     #[default]
     Auto,
     /// The Burn graph (`composite::composite`, `frozen::render_colour`) and
-    /// autodiff.
+    /// autodiff; on a GPU the photoreal step's compositing is the fused
+    /// CubeCL kernel (`composite_op`) inside that graph.
     Graph,
+    /// The Burn graph without the fused compositing kernel, on every device:
+    /// each sample's 8 corners x SH coefficients as tensors. On a GPU it is
+    /// the kernel's fallback and the "before" of its measurements
+    /// (docs/performance.md); in the stylization, whose colour pass has no
+    /// such kernel, it is `graph`.
+    Unfused,
     /// The fused plain-Rust passes (`host_fit`, `host_colour`), meant for
     /// the CPU backends (on a GPU they would read the grid back every step).
     Host,
@@ -44,7 +51,7 @@ impl RayKernel {
         match self {
             RayKernel::Auto => crate::util::tensor::is_host_memory(device),
             RayKernel::Host => true,
-            RayKernel::Graph => false,
+            RayKernel::Graph | RayKernel::Unfused => false,
         }
     }
 }

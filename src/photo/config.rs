@@ -141,8 +141,9 @@ pub struct TrainConfig {
     /// Rays per chunk when rendering whole images.
     pub render_chunk: usize,
     /// What renders and differentiates a step's batch: `auto` (plain Rust,
-    /// `field::host_fit`, on the CPU backends; the Burn graph on a GPU),
-    /// `host` or `graph`.
+    /// `field::host_fit`, on the CPU backends; the Burn graph with the fused
+    /// compositing kernel on a GPU), `host`, `graph` or `unfused` (the graph
+    /// without the fused kernel: its fallback on a GPU).
     pub ray_kernel: RayKernel,
 }
 

@@ -19,6 +19,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use std::path::Path;
 
+use crate::field::RayKernel;
 use crate::field::checkpoint::{self, CheckpointMeta};
 use crate::field::composite::{self, BatchTensors};
 use crate::field::environment::{Environment, FarOptimiser};
@@ -33,6 +34,7 @@ use crate::photo::config::{FarBackground, GridConfig, TrainConfig};
 use crate::scene::camera::Ray;
 use crate::scene::data::{Dataset, DatasetKind};
 use crate::util::backend::max_buffer_bytes;
+use crate::util::device_stats::PeakProbe;
 use crate::util::profile::StepProfile;
 use crate::util::rng::{Stream, step_rng};
 use crate::util::rows_op::{PREFETCH_AHEAD, read_rows, read_rows_into};
@@ -89,6 +91,8 @@ pub struct Trainer {
     /// The most samples the graph step renders in one graph: None takes
     /// the device's (`composite::max_samples_per_call`).
     max_samples_per_call: Option<usize>,
+    /// The graph step's peak device memory, when a measurement enables it.
+    pub memory_probe: PeakProbe,
 }
 
 /// The host step's working copies, kept from one step to the next: on
@@ -252,6 +256,7 @@ impl Trainer {
             batch: SampleBatch::default(),
             profile: StepProfile::default(),
             max_samples_per_call: None,
+            memory_probe: PeakProbe::default(),
         }
     }
 
@@ -264,6 +269,14 @@ impl Trainer {
     /// The run's device (where the steps render and differentiate).
     pub fn compute_device(&self) -> Device {
         self.compute.clone()
+    }
+
+    /// The same run with its steps on another ray kernel (`ray_kernel`):
+    /// how a resumed run's step is measured on each (examples/step_costs.rs).
+    pub fn with_ray_kernel(mut self, kernel: RayKernel) -> Self {
+        self.host_kernel = kernel.is_host(&self.compute);
+        self.config.ray_kernel = kernel;
+        self
     }
 
     /// The graph step renders at most `samples` samples in one graph, as on
@@ -501,7 +514,11 @@ impl Trainer {
                     &cut
                 }
             };
-            let mut bt = BatchTensors::for_gradients(run, Some(&|r: i32| subset.local(r)), plain);
+            let remap = |r: i32| subset.local(r);
+            let mut bt = match self.config.ray_kernel {
+                RayKernel::Unfused => BatchTensors::for_unfused_gradients(run, Some(&remap), plain),
+                _ => BatchTensors::for_gradients(run, Some(&remap), plain),
+            };
             // The far colours are a leaf too: their gradients train the far map.
             let far_leaf = bt.far.take().map(|f| f.autodiff().require_grad());
             bt.far = far_leaf.clone();
@@ -515,7 +532,9 @@ impl Trainer {
             if i == 0 && tv_in_graph {
                 loss = loss + self.tv_loss(local, &ld, &ls);
             }
+            self.memory_probe.note();
             let grads = loss.backward();
+            self.memory_probe.note();
             // No gradient at all when no ray of the run met a sample.
             let add = |sum: Option<Tensor<2>>, grad: Option<Tensor<2>>| match (sum, grad) {
                 (Some(s), Some(g)) => Some(s + g),

@@ -18,6 +18,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 #[cfg(not(any(feature = "flex", feature = "ndarray", feature = "wgpu")))]
 compile_error!("refnpr needs at least one backend feature: flex, ndarray or wgpu");
 
+use crate::util::device_stats;
 use crate::util::progress::Progress;
 use crate::util::transfer::human_bytes;
 
@@ -185,13 +186,17 @@ impl AdapterSummary {
 struct WgpuRuntime {
     device: Device,
     adapter: AdapterSummary,
+    /// Counts kernel launches for the process's life (`device_stats`).
+    _launches: burn_cubecl::cubecl::logging::LaunchObservation,
 }
+
+#[cfg(feature = "wgpu")]
+static RUNTIME: OnceLock<std::result::Result<WgpuRuntime, String>> = OnceLock::new();
 
 /// Brings the wgpu runtime up once per process (Burn registers one runtime
 /// per device selector; a second registration is refused).
 #[cfg(feature = "wgpu")]
 fn wgpu_runtime() -> Result<&'static WgpuRuntime> {
-    static RUNTIME: OnceLock<std::result::Result<WgpuRuntime, String>> = OnceLock::new();
     RUNTIME
         .get_or_init(|| {
             Device::wgpu_options()
@@ -199,7 +204,9 @@ fn wgpu_runtime() -> Result<&'static WgpuRuntime> {
                 .map(|(device, setup)| WgpuRuntime {
                     device,
                     adapter: AdapterSummary::of(&setup.adapter.get_info(), &setup.device.limits()),
+                    _launches: device_stats::count_launches(),
                 })
+                .inspect(|_| device_stats::wgpu_is_up())
                 .map_err(|e| e.to_string())
         })
         .as_ref()

@@ -18,11 +18,17 @@ pub fn proc_status_mb(key: &str) -> Option<f64> {
 pub struct MemoryNow {
     pub resident_mb: Option<f64>,
     pub peak_mb: Option<f64>,
+    /// The wgpu device's pools, where the process runs on wgpu.
+    pub device: Option<crate::util::device_stats::DeviceMemory>,
 }
 
 impl MemoryNow {
     pub fn read() -> Self {
-        Self { resident_mb: proc_status_mb("VmRSS:"), peak_mb: peak_rss_mb() }
+        Self {
+            resident_mb: proc_status_mb("VmRSS:"),
+            peak_mb: peak_rss_mb(),
+            device: crate::util::device_stats::device_memory(),
+        }
     }
 }
 

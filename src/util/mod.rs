@@ -1,11 +1,12 @@
 //! Generic helpers every stage uses: the backend choice, tensor conversions,
 //! the one `Image` type with PNG/GIF/npy I/O, atomic file writes that name the file
-//! on failure, one run per output folder, progress events, per-step random generators, memory readings, host-device traffic counts, per-part step timings, time and memory estimates from measured costs, reused buffers.
+//! on failure, one run per output folder, progress events, per-step random generators, memory readings, host-device traffic counts, GPU launch and device-memory counts, per-part step timings, time and memory estimates from measured costs, reused buffers.
 
 pub mod backend;
 pub(crate) mod bin_fields;
 pub mod config;
 pub mod costs;
+pub mod device_stats;
 pub(crate) mod diverged;
 pub mod files;
 pub mod gather_op;

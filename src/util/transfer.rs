@@ -26,10 +26,15 @@ pub struct Transfers {
     /// Tensors read back into plain buffers.
     pub reads: u64,
     pub read_bytes: u64,
+    /// GPU kernels launched (`util::device_stats::kernel_launches`); 0 on the
+    /// CPU backends.
+    #[serde(default)]
+    pub launches: u64,
 }
 
 thread_local! {
-    static COUNTED: Cell<Transfers> = const { Cell::new(Transfers { uploads: 0, upload_bytes: 0, reads: 0, read_bytes: 0 }) };
+    static COUNTED: Cell<Transfers> =
+        const { Cell::new(Transfers { uploads: 0, upload_bytes: 0, reads: 0, read_bytes: 0, launches: 0 }) };
 }
 
 /// Records one upload of `bytes`.
@@ -55,7 +60,7 @@ pub fn record_read(bytes: usize) {
 /// Everything this thread has moved so far; subtract two readings with
 /// [`Transfers::since`] to get what a piece of work moved.
 pub fn counted() -> Transfers {
-    COUNTED.with(Cell::get)
+    Transfers { launches: crate::util::device_stats::kernel_launches(), ..COUNTED.with(Cell::get) }
 }
 
 /// A piece of work's value, what it moved and how long it took.
@@ -81,6 +86,7 @@ impl Transfers {
             upload_bytes: self.upload_bytes - earlier.upload_bytes,
             reads: self.reads - earlier.reads,
             read_bytes: self.read_bytes - earlier.read_bytes,
+            launches: self.launches - earlier.launches,
         }
     }
 
@@ -91,6 +97,7 @@ impl Transfers {
             upload_bytes: self.upload_bytes + other.upload_bytes,
             reads: self.reads + other.reads,
             read_bytes: self.read_bytes + other.read_bytes,
+            launches: self.launches + other.launches,
         }
     }
 
@@ -102,6 +109,7 @@ impl Transfers {
             upload_bytes: self.upload_bytes / n,
             reads: self.reads / n,
             read_bytes: self.read_bytes / n,
+            launches: self.launches / n,
         }
     }
 }
@@ -148,7 +156,11 @@ impl fmt::Display for Transfers {
             human_bytes(self.upload_bytes),
             self.reads,
             human_bytes(self.read_bytes)
-        )
+        )?;
+        match self.launches {
+            0 => Ok(()),
+            n => write!(f, ", {n} kernel launches"),
+        }
     }
 }
 
@@ -163,7 +175,7 @@ mod tests {
         record_upload(28);
         record_read(4);
         let moved = counted().since(before);
-        assert_eq!(moved, Transfers { uploads: 2, upload_bytes: 128, reads: 1, read_bytes: 4 });
+        assert_eq!(moved, Transfers { uploads: 2, upload_bytes: 128, reads: 1, read_bytes: 4, launches: 0 });
         // Another thread's traffic is not this thread's.
         std::thread::spawn(|| record_upload(1 << 20)).join().unwrap();
         assert_eq!(counted().since(before), moved);
