@@ -700,6 +700,37 @@ fn a_graded_reference_is_a_recolouring_and_a_painted_one_is_not() {
     eprintln!("explained: {}", found.join(", "));
 }
 
+/// The recolouring gate measures a one-reference case against the image it
+/// was painted over, content.png, where the case keeps it (as `refnpr
+/// reference` writes it): a painting's change against the refit render
+/// would include the refit's own error. A missing content.png, one of
+/// another size, or a case of several references leave the gate on the
+/// refit render.
+#[test]
+fn the_gate_reads_the_image_a_reference_was_painted_over() {
+    use refnpr::reference::case::ReferenceCase;
+    use refnpr::stylize::styles::painted_over;
+    let t = TempDir::new("painted-over");
+    let (w, h) = (8, 6);
+    let content = Image::new(w, h, (0..w * h * 3).map(|i| (i % 7) as f32 / 7.0).collect());
+    let style = Image::new(w, h, content.rgb.iter().map(|v| 1.0 - v).collect());
+    let case_dir = t.path().join("case");
+    std::fs::create_dir_all(&case_dir).unwrap();
+    style.save_png(&case_dir.join("style.png")).unwrap();
+    std::fs::write(case_dir.join("reference.toml"), "[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\n")
+        .unwrap();
+    let case = ReferenceCase::load(&case_dir).unwrap();
+    let bg = [1.0, 1.0, 1.0];
+    assert!(painted_over(&case, std::slice::from_ref(&style), bg).is_none(), "no content.png");
+    content.save_png(&case_dir.join("content.png")).unwrap();
+    let over = painted_over(&case, std::slice::from_ref(&style), bg).expect("content.png is read");
+    let err = over.rgb.iter().zip(&content.rgb).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(err <= 0.5 / 255.0 + 1e-6, "content.png as written, to 8 bits: {err}");
+    assert!(painted_over(&case, &[style.clone(), style.clone()], bg).is_none(), "two references");
+    let other = Image::new(w + 1, h, vec![0.5; (w + 1) * h * 3]);
+    assert!(painted_over(&case, &[other], bg).is_none(), "a style of another size");
+}
+
 /// A recolouring reference (training view 0 colour-graded, hues rotated)
 /// reaches the surfaces it never sees through the colour map: with it (the
 /// refit field recoloured, L_color's targets mapped) the test views are
@@ -734,6 +765,8 @@ fn a_recolouring_reaches_the_unseen_side_through_the_colour_map() {
         assert!(tail <= refit[0], "the refit ends at MSE {tail} from {}", refit[0]);
         let map = report.colour_map;
         assert_eq!(map.map(|m| m.recolouring), on.then_some(gate), "{map:?}");
+        // The case has no content.png: the gate reads the refit render.
+        assert!(map.is_none_or(|m| m.explained_on == "the refit render"), "{map:?}");
         psnrs.push(test_psnr(&out, &twin));
     }
     eprintln!(

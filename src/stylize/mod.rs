@@ -157,8 +157,12 @@ pub struct SampleCacheReport {
 pub struct ColourMapReport {
     /// Reference pixels it was fitted on.
     pub pixels: usize,
-    /// `ColourMap::explained` over those pixels.
+    /// `ColourMap::explained`: over the image the reference was painted
+    /// over where the case keeps it (content.png), else over the refit
+    /// render's reference pixels.
     pub explained: f32,
+    /// What `explained` was measured on: `content.png` or `the refit render`.
+    pub explained_on: &'static str,
     /// At least `[colour_map] recolour_explained`: the map was fitted again
     /// with the recolouring's settings and L_color took its weight and patches.
     pub recolouring: bool,

@@ -26,7 +26,7 @@ use crate::stylize::config::StylizeConfig;
 use crate::stylize::guides::{self, ColourSource, Content};
 use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::step::{Guidance, StyleStep};
-use crate::stylize::styles::{arf_colour_transfer, is_background, read_styles, style_colour_stats};
+use crate::stylize::styles::{arf_colour_transfer, is_background, painted_over, read_styles, style_colour_stats};
 use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
 use crate::stylize::{ColourMapReport, CurvePoint, Method, StepKind, StylizeJob, StylizeReport};
 use crate::util::costs::Work;
@@ -114,7 +114,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         st.step.stylize_far(progress);
     }
     let colour = job.method == Method::RefNpr && job.config.ablation.use_colour_loss && case.color_pre;
-    st.fit_colour_map(&styles, progress);
+    st.fit_colour_map(&styles, painted_over(&case, &styles, ck.meta.background).as_ref(), progress);
     let (guidance, colour_matched) = st.content_phase(&styles, colour, image_size, &mut phases, progress)?;
     st.recolour_field();
     let sample_cache = st.step.samples.report(job.config.sample_cache_mb);
@@ -288,8 +288,12 @@ impl<'a> Stylization<'a> {
     }
 
     /// Ref-NPR with `[colour_map]` on: fits the references' colour mapping
-    /// on their content renders from the refit field.
-    fn fit_colour_map(&mut self, styles: &[Image], progress: &dyn Progress) {
+    /// on their content renders from the refit field. Whether it is a
+    /// recolouring is measured against `painted_over` (content.png) where
+    /// the case keeps it: the refit render differs from the photo render by
+    /// the refit's own error, which can outweigh a mild grade's whole change
+    /// (lego teal-orange: 45 % explained on the refit render).
+    fn fit_colour_map(&mut self, styles: &[Image], painted_over: Option<&Image>, progress: &dyn Progress) {
         let cfg = &self.job.config.colour_map;
         if self.job.method != Method::RefNpr || !(cfg.init_field || cfg.colour_targets || cfg.mapped_content) {
             return;
@@ -297,15 +301,21 @@ impl<'a> Stylization<'a> {
         let contents: Vec<Image> = (0..styles.len()).map(|r| self.step.render_reference(r)).collect();
         let pairs: Vec<(&Image, &Image)> = contents.iter().zip(styles).collect();
         let map = ColourMap::fit(&pairs, cfg, self.step.background());
-        let explained = map.explained(&pairs);
-        let report =
-            ColourMapReport { pixels: map.pixels, explained, recolouring: explained >= cfg.recolour_explained };
+        let (explained, explained_on) = match (painted_over, styles) {
+            (Some(over), [style]) => {
+                let painted = [(over, style)];
+                (ColourMap::fit(&painted, cfg, self.step.background()).explained(&painted), "content.png")
+            }
+            _ => (map.explained(&pairs), "the refit render"),
+        };
+        let recolouring = explained >= cfg.recolour_explained;
+        let report = ColourMapReport { pixels: map.pixels, explained, explained_on, recolouring };
         let map = match report.recolouring {
             true => ColourMap::fit(&pairs, &cfg.recolouring(), self.step.background()),
             false => map,
         };
         progress.info(format!(
-            "colour map fitted on {} reference pixels; it explains {:.0} % of the painting's change{}",
+            "colour map fitted on {} reference pixels; it explains {:.0} % of the painting's change (measured on {explained_on}){}",
             map.pixels,
             100.0 * explained,
             match report.recolouring {

@@ -99,6 +99,21 @@ pub fn read_styles(
         .collect()
 }
 
+/// The image a one-reference case was painted over, where the case keeps
+/// it: `refnpr reference` writes the view's photoreal render as
+/// content.png beside reference.toml. None for other cases, or when the
+/// file is missing or not of the reference view's size.
+pub fn painted_over(case: &ReferenceCase, styles: &[Image], background: [f32; 3]) -> Option<Image> {
+    let [style] = styles else { return None };
+    let path = case.dir.join("content.png");
+    let (w, h) = image::image_dimensions(&path).ok()?;
+    if (w as usize, h as usize) != (style.width, style.height) {
+        return None;
+    }
+    let (rgb, _) = case::read_style(&path, w, h, background).ok()?;
+    Some(Image::new(style.width, style.height, rgb))
+}
+
 /// Mean and covariance of the colours of `images` (interleaved RGB
 /// buffers): over every pixel, or over those not of the background colour
 /// (every pixel when that leaves none).
