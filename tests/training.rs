@@ -527,6 +527,16 @@ fn the_fit_is_the_same_bits_on_one_thread_and_on_the_default_pool() {
     assert!(bits(&a.grid.sh) == bits(&b.grid.sh), "SH differ");
 }
 
+/// A fresh trainer on `ds` (with a far background, so that its colours'
+/// gradients come from each kernel too) whose steps run on `kernel`, with
+/// heavy TV terms on half of the rows: what the kernel comparisons step.
+fn heavy_tv_trainer(ds: &data::Dataset, kernel: refnpr::field::RayKernel) -> Trainer {
+    let mut cfg = with_far(tiny_config(40), true);
+    cfg.ray_kernel = kernel;
+    (cfg.optim.tv_fraction, cfg.optim.tv_density, cfg.optim.tv_sh) = (0.5, 1e-2, 1e-1);
+    Trainer::new(ds, cfg, &common::device()).unwrap()
+}
+
 /// The CPU backends' plain-Rust training step (`field::host_fit`, the TV
 /// gradients and RMSprop on host values) and the Burn graph's step (the
 /// GPU path: autodiff and tensor RMSprop) fit the same grid up to the order
@@ -542,11 +552,7 @@ fn the_host_training_step_matches_the_graph_step() {
     let t = TempDir::new("host-step");
     let ds = tiny_scene_in(&t.path().join("scene"), true);
     let trainer = |kernel| {
-        // With a far background: its colours' gradients come from both kernels too.
-        let mut cfg = with_far(tiny_config(40), true);
-        cfg.ray_kernel = kernel;
-        (cfg.optim.tv_fraction, cfg.optim.tv_density, cfg.optim.tv_sh) = (0.5, 1e-2, 1e-1);
-        let mut tr = Trainer::new(&ds, cfg, &common::device()).unwrap();
+        let mut tr = heavy_tv_trainer(&ds, kernel);
         let losses: Vec<f32> = (0..4).map(|_| tr.step_once().unwrap().mse).collect();
         (tr, losses)
     };
@@ -563,7 +569,7 @@ fn the_host_training_step_matches_the_graph_step() {
 /// kernel (its fallback on a GPU), trains as `graph` does: on wgpu it is
 /// the kernel against the graph, on the CPU backends the same graph twice.
 /// The launch counter sees the difference: on a GPU the fused step launches
-/// fewer kernels (lego at 256³: 50 against 137, docs/performance.md); the
+/// fewer kernels (lego at 256³: 48 against 135, docs/performance.md); the
 /// CPU backends launch none.
 #[test]
 fn the_unfused_graph_step_trains_as_the_fused_one() {
@@ -572,10 +578,7 @@ fn the_unfused_graph_step_trains_as_the_fused_one() {
     let t = TempDir::new("unfused-step");
     let ds = tiny_scene_in(&t.path().join("scene"), true);
     let trainer = |kernel| {
-        let mut cfg = with_far(tiny_config(40), true);
-        cfg.ray_kernel = kernel;
-        (cfg.optim.tv_fraction, cfg.optim.tv_density, cfg.optim.tv_sh) = (0.5, 1e-2, 1e-1);
-        let mut tr = Trainer::new(&ds, cfg, &common::device()).unwrap();
+        let mut tr = heavy_tv_trainer(&ds, kernel);
         let losses: Vec<f32> = (0..3).map(|_| tr.step_once().unwrap().mse).collect();
         let before = transfer::counted();
         tr.step_once().unwrap();
