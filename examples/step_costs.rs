@@ -5,8 +5,8 @@
 //! the checkpoint, runs 2 steps to warm up (shader compilation, the pools'
 //! first pages), then STEPS steps, and prints per step: the median wall
 //! time, the part profile, host-device traffic and kernel launches, and the
-//! device memory after them; then, over 2 more steps, the graph step's peak. One kernel per process, so that its memory
-//! figures are its own.
+//! device memory after them; then, over 2 more steps, the graph step's
+//! peak. One kernel per process, so that its memory figures are its own.
 use std::path::PathBuf;
 
 use refnpr::field::RayKernel;
@@ -41,16 +41,7 @@ fn main() -> anyhow::Result<()> {
         samples += st.samples;
     }
     let moved = transfer::counted().since(before).per_step(steps);
-    let parts: Vec<profile::PartTime> = trainer
-        .profile
-        .parts()
-        .into_iter()
-        .map(|p| profile::PartTime {
-            seconds: p.seconds / steps as f64,
-            cpu_seconds: p.cpu_seconds.map(|c| c / steps as f64),
-            ..p
-        })
-        .collect();
+    let parts: Vec<profile::PartTime> = trainer.profile.parts().iter().map(|p| p.per_step(steps)).collect();
     // The peak over two more steps, untimed (each probe waits for the device).
     trainer.memory_probe = device_stats::PeakProbe::enabled();
     for _ in 0..2 {

@@ -259,14 +259,7 @@ pub fn stylize_timing(
                 steps: times.len(),
                 median_step_seconds: median(times.clone()),
                 mean_step_seconds: times.iter().sum::<f64>() / steps as f64,
-                parts: parts
-                    .iter()
-                    .map(|p| crate::util::profile::PartTime {
-                        seconds: p.seconds / steps as f64,
-                        cpu_seconds: p.cpu_seconds.map(|c| c / steps as f64),
-                        ..p.clone()
-                    })
-                    .collect(),
+                parts: parts.iter().map(|p| p.per_step(steps)).collect(),
             })
         })
         .collect();

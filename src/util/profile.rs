@@ -28,6 +28,15 @@ pub struct PartTime {
     pub cpu_seconds: Option<f64>,
 }
 
+impl PartTime {
+    /// This total as a mean over `steps` steps (wall and CPU seconds; the
+    /// call count stays the total).
+    pub fn per_step(&self, steps: usize) -> PartTime {
+        let n = steps.max(1) as f64;
+        PartTime { seconds: self.seconds / n, cpu_seconds: self.cpu_seconds.map(|c| c / n), ..self.clone() }
+    }
+}
+
 /// Seconds per part, in the order the parts were first timed.
 #[derive(Debug, Default)]
 pub struct StepProfile {
