@@ -508,6 +508,10 @@ enum Command {
         /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
         #[arg(long, value_enum, env = "REFNPR_BACKEND")]
         backend: Option<BackendKind>,
+        /// On a GPU, wait for the device at the end of each part of a step, so that each
+        /// part's time is its own work (the config's `sync_parts`; slower steps).
+        #[arg(long)]
+        sync_parts: bool,
         /// Also write the results as JSON here.
         #[arg(long)]
         json: Option<PathBuf>,
@@ -695,16 +699,19 @@ fn run() -> Result<()> {
 
 /// `refnpr bench-stylize`.
 fn run_bench_stylize_command(command: Command, progress: &Console) -> Result<()> {
-    let Command::BenchStylize { inputs, out, config, method, refit_epochs, image_epochs, backend, json } = command
+    let Command::BenchStylize { inputs, out, config, method, refit_epochs, image_epochs, backend, sync_parts, json } =
+        command
     else {
         unreachable!("called for bench-stylize")
     };
     let PhotoAndCase { photo, reference: case, data } = inputs;
+    let mut config = stylize_config(config.as_deref())?;
+    config.sync_parts |= sync_parts;
     let job = StylizeJob {
         photo,
         case,
         out,
-        config: stylize_config(config.as_deref())?,
+        config,
         method,
         backend: backend_or_env(backend, progress)?,
         style: None,

@@ -11,6 +11,8 @@
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, activation::relu};
 
 use crate::field::composite::{interpolate_corners, max_samples_per_call};
+#[cfg(feature = "wgpu")]
+use crate::field::frozen_op;
 use crate::field::grid::{CellLattice, RadianceGrid, weights_of_fractions};
 use crate::field::march::{ColourCorners, MarchParams, Marcher, colour_weights};
 use crate::scene::camera::Ray;
@@ -597,21 +599,45 @@ impl FrozenTensors {
 }
 
 /// Colours `[rays, 3]` of the rays from degree-0 SH rows `sh` (`[rows, 3]`):
-/// differentiable in `sh` when it is on an autodiff device.
+/// differentiable in `sh` when it is on an autodiff device. On a GPU the
+/// fused kernel (`frozen_op`) wherever its backward can run: the corners
+/// carry their transpose, or nothing is differentiated; else the graph.
 pub fn render_colour(sh: Tensor<2>, ft: &FrozenTensors, background: [f32; 3]) -> Tensor<2> {
-    let device = sh.device();
-    let bg = match &ft.far {
-        Some(far) => far.clone(),
-        None => floats(background.to_vec(), [1, 3], &device),
-    };
-    let background_part = ft.final_transmittance.clone() * bg;
+    #[cfg(feature = "wgpu")]
+    if ft.num_samples > 0
+        && !is_host_memory(&sh.device())
+        && (ft.corners.transpose_parts().is_some() || !sh.is_tracked())
+    {
+        let device = sh.device();
+        let starts = indices(ft.ray_starts.clone(), &device);
+        let colour =
+            frozen_op::colour_fused(sh, &ft.corners, &ft.colour_weights, &ft.weight, &ft.ray_of_sample, starts);
+        return colour + background_part(ft, background, &device);
+    }
+    render_colour_graph(sh, ft, background)
+}
+
+/// [`render_colour`] as the Burn graph: the CPU backends' path, and the
+/// oracle of the GPU's fused kernel.
+pub fn render_colour_graph(sh: Tensor<2>, ft: &FrozenTensors, background: [f32; 3]) -> Tensor<2> {
+    let behind = background_part(ft, background, &sh.device());
     if ft.num_samples == 0 {
-        return background_part;
+        return behind;
     }
     let coeff = interpolate_corners(sh, &ft.corners, ft.colour_weights.clone());
     let colour = relu(coeff * sh::C0 + 0.5);
     let contribution = colour * ft.weight.clone();
-    sum_runs(contribution, &ft.ray_of_sample, &ft.ray_starts) + background_part
+    sum_runs(contribution, &ft.ray_of_sample, &ft.ray_starts) + behind
+}
+
+/// Each ray's background (its far colour, else `background`) times its
+/// final transmittance, `[rays, 3]`.
+fn background_part(ft: &FrozenTensors, background: [f32; 3], device: &Device) -> Tensor<2> {
+    let bg = match &ft.far {
+        Some(far) => far.clone(),
+        None => floats(background.to_vec(), [1, 3], device),
+    };
+    ft.final_transmittance.clone() * bg
 }
 
 /// Renders all rays of `samples` in chunks of `chunk` rays without autodiff:
@@ -744,5 +770,96 @@ mod tests {
         }
         let some = FrozenSamples::march(&marcher, &rays, &params, 0.0).bytes();
         assert!(FrozenSamples::march_within(&marcher, &rays, &params, 0.0, 100, some / 2).is_none());
+    }
+}
+
+/// The fused kernel (`frozen_op`) against the Burn graph ([`render_colour_graph`]),
+/// on every backend the test command runs (`cargo test --lib
+/// graph_oracle`): the kernel runs on wgpu; on the CPU backends both sides
+/// are the graph.
+#[cfg(test)]
+#[allow(clippy::print_stdout)] // the measured errors, shown with --nocapture
+mod graph_oracle {
+    use super::{DeviceSamples, FrozenSamples, FrozenTensors, render_colour, render_colour_graph};
+    use crate::field::grid::blob_grid;
+    use crate::field::march::{MarchParams, Marcher};
+    use crate::scene::sh::C0;
+    use crate::test_support::{device, test_camera};
+    use crate::util::device_stats::kernel_launches;
+    use crate::util::tensor::{floats, is_host_memory, to_vec};
+    use burn::tensor::Tensor;
+
+    /// Colours and the SH gradient of a weighted sum of them, to 1e-5 of
+    /// each one's largest value, for the three ways the stylization lays
+    /// out its samples: uploaded with a full transpose (a chunk's rows
+    /// renumbered), the device lists' chunks (compact transposes), and a
+    /// render-only upload (no transpose: the fused forward, no backward).
+    /// The SH values run from -3 to 3, so some colours clip at zero and
+    /// their ReLUs pass no gradient; the rays have far colours of their own.
+    /// Both sides sum the corners in one order and the samples front to
+    /// back, but a GPU may fuse multiply-adds. A wrong term (the ReLU mask
+    /// left out, a weight applied twice) is off by whole percents.
+    #[test]
+    fn the_fused_colour_pass_matches_the_graph() {
+        let dev = device();
+        let grid = blob_grid(6, &dev);
+        let rays = test_camera(40).rays(None);
+        let mut samples = FrozenSamples::march(&Marcher::new(&grid), &rays, &MarchParams::default(), 0.0);
+        samples.far = (0..samples.num_rays).map(|i| [0.1 * (i % 7) as f32, 0.5, 1.0 - 0.0005 * i as f32]).collect();
+        assert!(samples.num_samples() > 2000, "{} samples", samples.num_samples());
+        let rows = grid.num_rows();
+        let sh: Vec<f32> = (0..rows * 3).map(|i| ((i * 37) % 23) as f32 / 23.0 * 6.0 - 3.0).collect();
+        let clipped = (0..samples.num_rays)
+            .flat_map(|r| samples.ray_samples(r).collect::<Vec<_>>())
+            .filter(|s| (0..8).map(|c| s.colour_weights[c] * sh[s.rows[c] as usize * 3]).sum::<f32>() * C0 + 0.5 < 0.0)
+            .count();
+        assert!(clipped > 100, "{clipped} samples' red clips at zero");
+        let weights: Vec<f32> = (0..samples.num_rays * 3).map(|i| ((i * 13) % 11) as f32 / 11.0 - 0.4).collect();
+        let bg = [0.2, 0.9, 0.4];
+        let run = |ft: &FrozenTensors, graph: bool| {
+            let leaf = floats(sh.clone(), [rows, 3], &dev).autodiff().require_grad();
+            let rgb = match graph {
+                true => render_colour_graph(leaf.clone(), ft, bg),
+                false => render_colour(leaf.clone(), ft, bg),
+            };
+            let loss = (rgb.clone() * floats(weights.clone(), [ft.num_rays, 3], &dev)).sum();
+            let grad = leaf.grad(&loss.backward()).expect("a gradient");
+            (to_vec(rgb), to_vec(grad))
+        };
+        let (expanded_rows, colour_weights) = samples.expanded();
+        let full = samples.upload_expanded(expanded_rows, colour_weights, Some(rows), &dev);
+        let all: Vec<usize> = (0..samples.num_rays).collect();
+        let lists = DeviceSamples::upload(&samples, &dev);
+        let sh_t = floats(sh.clone(), [rows, 3], &dev);
+        let chunks: Vec<FrozenTensors> = lists.gather_chunks(&all, 16384, &sh_t).map(|(_, _, ft)| ft).collect();
+        assert_eq!(chunks.len(), 1, "the lists fit one chunk");
+        let on_gpu = !is_host_memory(&dev);
+        for (name, ft) in [("full transpose", &full), ("compact transpose", &chunks[0])] {
+            assert_eq!(ft.corners.transpose_parts().is_some(), on_gpu, "{name}: the GPU's lists carry a transpose");
+            let before = kernel_launches();
+            let ours = run(ft, false);
+            let fused_launches = kernel_launches() - before;
+            let before = kernel_launches();
+            let theirs = run(ft, true);
+            let graph_launches = kernel_launches() - before;
+            for (what, a, b) in [("colours", &ours.0, &theirs.0), ("SH gradient", &ours.1, &theirs.1)] {
+                let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+                let err = a.iter().zip(b).fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+                println!("{name}, {what}: max |fused - graph| = {err:.2e} of {scale:.2e}");
+                assert!(scale > 0.0 && b.iter().filter(|v| **v != 0.0).count() > 10, "{name}, {what}: all zero");
+                assert!(err <= 1e-5 * scale, "{name}, {what}: {err:.2e} of {scale:.2e}");
+            }
+            println!("{name}: {fused_launches} kernel launches fused, {graph_launches} by the graph");
+            match on_gpu {
+                true => assert!(fused_launches < graph_launches, "{fused_launches} vs {graph_launches}"),
+                false => assert_eq!((fused_launches, graph_launches), (0, 0), "the CPU backends launch no kernels"),
+            }
+        }
+        // A render-only upload (no transpose) renders the same colours.
+        let plain = samples.upload(&dev);
+        let forward: Tensor<2> = render_colour(floats(sh.clone(), [rows, 3], &dev), &plain, bg);
+        let graph = render_colour_graph(floats(sh, [rows, 3], &dev), &plain, bg);
+        let err = to_vec(forward).iter().zip(to_vec(graph)).fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+        assert!(err <= 1e-5, "render-only forward: {err:.2e}");
     }
 }

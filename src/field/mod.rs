@@ -1,8 +1,8 @@
 //! The radiance field: the sparse voxel grid (`grid`), ray marching in plain
 //! Rust (`march`), the differentiable compositing graph (`composite`;
 //! `composite_op`, its GPU kernel), the colour-only renderer over frozen
-//! density (`frozen`; `host_colour`, its fused plain-Rust twin for the CPU
-//! backends), what the optimisers share (`optim`; `optim_op`, RMSprop's
+//! density (`frozen`; `frozen_op`, its GPU kernel; `host_colour`, its fused
+//! plain-Rust twin for the CPU backends), what the optimisers share (`optim`; `optim_op`, RMSprop's
 //! GPU kernel), the far background behind the box (`environment`) and
 //! single-file checkpoints (`checkpoint`).
 
@@ -11,6 +11,7 @@ pub mod composite;
 pub mod composite_op;
 pub mod environment;
 pub mod frozen;
+pub mod frozen_op;
 pub mod grid;
 pub(crate) mod host_colour;
 pub(crate) mod host_fit;
@@ -31,14 +32,16 @@ pub enum RayKernel {
     #[default]
     Auto,
     /// The Burn graph (`composite::composite`, `frozen::render_colour`) and
-    /// autodiff; on a GPU the photoreal step's compositing is the fused
-    /// CubeCL kernel (`composite_op`) inside that graph.
+    /// autodiff; on a GPU the photoreal step's compositing and the
+    /// stylization's colour pass are fused CubeCL kernels (`composite_op`,
+    /// `frozen_op`) inside that graph.
     Graph,
     /// The Burn graph without the fused compositing kernel, on every device:
     /// each sample's 8 corners x SH coefficients as tensors. On a GPU it is
     /// the kernel's fallback and the "before" of its measurements
-    /// (docs/performance.md); in the stylization, whose colour pass has no
-    /// such kernel, it is `graph`.
+    /// (docs/performance.md); in the stylization it is `graph`, whose
+    /// colour pass on a GPU is `frozen_op`'s kernel (its graph is the
+    /// oracle of the test command's `graph_oracle` tests).
     Unfused,
     /// The fused plain-Rust passes (`host_fit`, `host_colour`), meant for
     /// the CPU backends (on a GPU they would read the grid back every step).

@@ -428,6 +428,11 @@ pub struct StylizeConfig {
     /// On the CPU backends, keep the content term's fixed features as f16
     /// numbers (half their memory; `tcm::StoredFeatures`). No effect on a GPU.
     pub half_content_features: bool,
+    /// Wait for the device at the end of each timed part of a step, so
+    /// that on a GPU each part's time in the step profile is its own work
+    /// (its queue runs asynchronously otherwise, and a part's time lands
+    /// where the host next waits); slower steps. `bench-stylize --sync-parts`.
+    pub sync_parts: bool,
     /// Rays per chunk in rendering and the deferred re-render.
     pub render_chunk: usize,
     /// Query rows per chunk in the nearest-neighbour searches.
@@ -451,6 +456,7 @@ impl Default for StylizeConfig {
             samples_on_device: Placement::Auto,
             ray_kernel: RayKernel::Auto,
             half_content_features: true,
+            sync_parts: false,
             render_chunk: 16384,
             search_chunk: 1024,
         }

@@ -180,6 +180,7 @@ impl<'a> StyleStep<'a> {
         let samples = SampleCache::new(&field.grid, dataset, meta.ndc, march, &job.config, registration);
         let (ad, device) = (job.backend.autodiff_device(), job.backend.device());
         let kernel = if job.config.ray_kernel.is_host(&device) { RayPass::Host } else { RayPass::Graph };
+        let profile = StepProfile::syncing(job.config.sync_parts.then(|| device.clone()));
         StyleStep {
             job,
             cfg: &job.config,
@@ -192,7 +193,7 @@ impl<'a> StyleStep<'a> {
             device,
             kernel,
             optimiser_steps: 0,
-            profile: StepProfile::default(),
+            profile,
         }
     }
 
@@ -303,7 +304,7 @@ impl<'a> StyleStep<'a> {
         let lr = self.learning_rate(log_lerp(s.lr, s.lr_final, step as f32 / total_steps.max(1) as f32));
         let started = std::time::Instant::now();
         self.optimiser_step(grad, rows, lr);
-        self.profile.add("optimiser", started.elapsed().as_secs_f64());
+        self.profile.add_since("optimiser", started);
         Ok(CurvePoint {
             phase: if smooth { StepKind::Smooth } else { StepKind::Image },
             step,
@@ -373,7 +374,7 @@ impl<'a> StyleStep<'a> {
         let lr = self.learning_rate(s.lr_refit);
         let started = std::time::Instant::now();
         self.optimiser_step(grad, rows, lr);
-        self.profile.add("optimiser", started.elapsed().as_secs_f64());
+        self.profile.add_since("optimiser", started);
         CurvePoint::refit(step, mse)
     }
 
@@ -530,7 +531,7 @@ impl<'a> StyleStep<'a> {
             Some(chunks) => render_gathered(sh, chunks, self.background),
             None => render_chunks(sh, &uploaded, self.background),
         };
-        self.profile.add("image_render", started.elapsed().as_secs_f64());
+        self.profile.add_since("image_render", started);
         // 2. Image losses on a leaf image, gradient with respect to the image.
         let started = std::time::Instant::now();
         let image = planar_image(rgb, w, h).autodiff().require_grad();
@@ -538,7 +539,7 @@ impl<'a> StyleStep<'a> {
         let grads = loss.backward();
         let Some(g) = image.grad(&grads) else { bail!("the image losses do not depend on the image") };
         let g = interleaved(g);
-        self.profile.add("image_losses_vgg", started.elapsed().as_secs_f64());
+        self.profile.add_since("image_losses_vgg", started);
         // 3. Chunked re-render with autodiff, injecting the image gradient.
         let inject = |rgb: Tensor<2>, start: usize, len: usize| (rgb * g.clone().narrow(0, start, len)).sum();
         let grad = self.profile.time("image_rerender_grad", || match gathered {
@@ -569,7 +570,7 @@ impl<'a> StyleStep<'a> {
         let grads = loss.backward();
         let Some(g) = image.grad(&grads) else { bail!("the image losses do not depend on the image") };
         let g = to_vec(interleaved(g));
-        self.profile.add("image_losses_vgg", started.elapsed().as_secs_f64());
+        self.profile.add_since("image_losses_vgg", started);
         let (grad, _) = self.profile.time("image_rerender_grad", || {
             host_colour::colour_gradient(sh, samples, None, self.background, rows.len(), &rows.slot_fn(), |k, _| {
                 ([g[k * 3], g[k * 3 + 1], g[k * 3 + 2]], 0.0)

@@ -78,6 +78,14 @@ impl RowIndex {
         }
     }
 
+    /// The transpose as a fused kernel's backward reads it (`order`,
+    /// `offsets`, and `touched`, empty for a full transpose), when built.
+    pub fn transpose_parts(&self) -> Option<(Tensor<1, Int>, Tensor<1, Int>, Tensor<1, Int>)> {
+        let (order, offsets) = self.transpose.clone()?;
+        let touched = self.touched.clone().unwrap_or_else(|| Tensor::zeros([0], &order.device()));
+        Some((order, offsets, touched))
+    }
+
     /// The index alone, with Burn's `select` backward (the CPU backends, or
     /// a forward without gradients).
     pub fn plain(idx: Tensor<1, Int>) -> Self {

@@ -5,12 +5,16 @@
 //! Host wall time: on the CPU backends work runs when it is issued, so each
 //! part gets its own cost. On a GPU the queue runs asynchronously and a
 //! part's time lands where the host next waits for the device (a read).
+//! A profile made by [`StepProfile::syncing`] waits for the device at the
+//! end of each part instead (`refnpr bench-stylize --sync-parts`).
 //! Parts timed with [`StepProfile::time`] also get the process's CPU time
 //! (all threads), so CPU seconds over wall seconds says how much of the
 //! machine a part used: about 1 for a serial part, up to the core count.
 
 use std::cell::RefCell;
 use std::time::Instant;
+
+use burn::tensor::Device;
 
 use serde::{Deserialize, Serialize};
 
@@ -41,13 +45,24 @@ impl PartTime {
 #[derive(Debug, Default)]
 pub struct StepProfile {
     parts: RefCell<Vec<PartTime>>,
+    /// The device waited for at the end of each part ([`syncing`](Self::syncing)).
+    sync: Option<Device>,
 }
 
 impl StepProfile {
+    /// A profile that, with `device`, waits for it to finish its queue at
+    /// the end of each part, so that on a GPU a part's time is its own work
+    /// (and the step is slower, the queue drained between parts); `None`
+    /// is the default profile.
+    pub fn syncing(device: Option<Device>) -> Self {
+        Self { sync: device, ..Self::default() }
+    }
+
     /// Runs `f`, adding its wall time to `part`.
     pub fn time<T>(&self, part: &str, f: impl FnOnce() -> T) -> T {
         let (started, cpu_started) = (Instant::now(), process_cpu_seconds());
         let value = f();
+        self.wait();
         let cpu = cpu_started.zip(process_cpu_seconds()).map(|(a, b)| b - a);
         self.record(part, started.elapsed().as_secs_f64(), cpu);
         value
@@ -56,6 +71,21 @@ impl StepProfile {
     /// Adds `seconds` (wall) to `part`.
     pub fn add(&self, part: &str, seconds: f64) {
         self.record(part, seconds, None);
+    }
+
+    /// Adds the wall time since `started` to `part` (after the wait of a
+    /// [`syncing`](Self::syncing) profile).
+    pub fn add_since(&self, part: &str, started: Instant) {
+        self.wait();
+        self.record(part, started.elapsed().as_secs_f64(), None);
+    }
+
+    /// A syncing profile's wait for its device. A failed wait is the
+    /// device's error, which the step's next read reports.
+    fn wait(&self) {
+        if let Some(device) = &self.sync {
+            let _ = device.sync();
+        }
     }
 
     fn record(&self, part: &str, seconds: f64, cpu_seconds: Option<f64>) {
@@ -128,6 +158,26 @@ pub fn describe(parts: &[PartTime]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A syncing profile waits for its device and records exactly what a
+    /// plain one does: the same parts, in the same order, the same calls.
+    #[test]
+    fn a_syncing_profile_records_the_parts_a_plain_one_does() {
+        let device = crate::util::backend::BackendKind::from_env().expect("REFNPR_BACKEND names a backend").device();
+        let record = |p: &StepProfile| {
+            let x = p.time("render", || {
+                burn::tensor::Tensor::<2>::ones([64, 64], &device).matmul(burn::tensor::Tensor::ones([64, 64], &device))
+            });
+            let started = Instant::now();
+            let _ = crate::util::tensor::to_vec(x);
+            p.add_since("read", started);
+            p.time("render", || ());
+            p.parts().into_iter().map(|t| (t.part, t.calls)).collect::<Vec<_>>()
+        };
+        let plain = record(&StepProfile::default());
+        assert_eq!(plain, [("render".to_string(), 2), ("read".to_string(), 1)]);
+        assert_eq!(record(&StepProfile::syncing(Some(device.clone()))), plain);
+    }
 
     #[test]
     fn parts_sum_per_name_in_first_seen_order() {
