@@ -509,7 +509,7 @@ enum Command {
         #[arg(long, value_enum, env = "REFNPR_BACKEND")]
         backend: Option<BackendKind>,
         /// On a GPU, wait for the device at the end of each part of a step, so that each
-        /// part's time is its own work (the config's `sync_parts`; slower steps).
+        /// part's time is its own work (the config's `sync_parts`; compare whole steps without it).
         #[arg(long)]
         sync_parts: bool,
         /// Also write the results as JSON here.

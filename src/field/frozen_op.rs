@@ -9,14 +9,13 @@
 //! training view 0: 380,792 samples, 36.6 MB a gather; on lavapipe its
 //! re-render with the gradient took 0.367 s, 0.150 s here:
 //! `examples/colour_costs.rs`, docs/performance.md). Here the forward is
-//! one thread per ray and channel reading each sample's corners from the
-//! rows as it goes; the
-//! backward is one thread per sample for the gradient of its 3 channels
-//! before their ReLUs (`[s, 3]`, the only per-sample tensor), then one
-//! thread per (row, channel) summing its entries through the corners'
-//! transpose (`util::gather_op::RowIndex`), each times its colour weight:
-//! no atomics, the same sums on every run. `frozen`'s `graph_oracle` test
-//! holds it to the graph.
+//! one thread per (ray, channel) reading each sample's corners from the
+//! rows as it goes; the backward is one thread per (sample, channel) for
+//! the gradient before the ReLU (`[s, 3]`, the only per-sample tensor),
+//! then one thread per (row, channel) summing its entries through the
+//! corners' transpose (`util::gather_op::RowIndex`), each times its colour
+//! weight: no atomics, the same sums on every run. `frozen`'s
+//! `graph_oracle` test holds it to the graph.
 
 use burn::tensor::{Int, Tensor};
 

@@ -431,7 +431,8 @@ pub struct StylizeConfig {
     /// Wait for the device at the end of each timed part of a step, so
     /// that on a GPU each part's time in the step profile is its own work
     /// (its queue runs asynchronously otherwise, and a part's time lands
-    /// where the host next waits); slower steps. `bench-stylize --sync-parts`.
+    /// where the host next waits); compare whole steps without it (the
+    /// queue is drained between parts). `bench-stylize --sync-parts`.
     pub sync_parts: bool,
     /// Rays per chunk in rendering and the deferred re-render.
     pub render_chunk: usize,

@@ -52,7 +52,8 @@ pub struct StepProfile {
 impl StepProfile {
     /// A profile that, with `device`, waits for it to finish its queue at
     /// the end of each part, so that on a GPU a part's time is its own work
-    /// (and the step is slower, the queue drained between parts); `None`
+    /// (the queue is drained between parts, which changes how work
+    /// overlaps: compare whole steps without it); `None`
     /// is the default profile.
     pub fn syncing(device: Option<Device>) -> Self {
         Self { sync: device, ..Self::default() }
