@@ -70,11 +70,11 @@ mod cube_op {
     use burn_cubecl::cubecl;
     use burn_cubecl::cubecl::prelude::*;
     use burn_cubecl::kernel::into_contiguous;
-    use burn_cubecl::ops::numeric::{empty_device_dtype, zeros_client};
+    use burn_cubecl::ops::numeric::empty_device_dtype;
     use burn_cubecl::tensor::CubeTensor;
 
     use crate::scene::sh::C0;
-    use crate::util::gather_op::one_per_value;
+    use crate::util::gather_op::{one_per_value, sum_weighted_by_rows};
 
     /// The fused frozen-density colour pass (module docs).
     #[backend_extension(Cube, Autodiff)]
@@ -197,44 +197,6 @@ mod cube_op {
         out[pos] = g;
     }
 
-    /// One thread per output value of a row the corners read: its entries
-    /// (sample `e / 8`'s corner `e % 8`) in transpose order. `compact`: run
-    /// `k` is row `touched[k]`'s (the other rows' zeros already written),
-    /// else row `k`'s.
-    #[cube(launch)]
-    #[allow(clippy::too_many_arguments)]
-    fn row_grads_kernel<F: Float, I: Numeric>(
-        sample_grads: &Tensor<F>,
-        colour_weights: &Tensor<F>,
-        order: &Tensor<I>,
-        offsets: &Tensor<I>,
-        touched: &Tensor<I>,
-        out: &mut Tensor<F>,
-        units: u32,
-        #[comptime] compact: bool,
-        #[define(F, I)] _dtypes: [ElemType; 2],
-    ) {
-        let pos = ABSOLUTE_POS;
-        if pos >= units as usize {
-            terminate!();
-        }
-        let (run, ch) = (pos / 3, pos % 3);
-        let mut acc = F::new(0.0);
-        if run + 1 < offsets.len() {
-            let start = u32::cast_from(offsets[run]) as usize;
-            let end = u32::cast_from(offsets[run + 1]) as usize;
-            for k in start..end {
-                let entry = u32::cast_from(order[k]) as usize;
-                acc += sample_grads[(entry / 8) * 3 + ch] * colour_weights[entry];
-            }
-        }
-        let mut row = run;
-        if compact {
-            row = u32::cast_from(touched[run]) as usize;
-        }
-        out[row * 3 + ch] = acc;
-    }
-
     fn empty_like(like: &CubeTensor, shape: Shape) -> CubeTensor {
         empty_device_dtype(like.client.clone(), like.device.clone(), shape, like.dtype)
     }
@@ -319,40 +281,8 @@ mod cube_op {
             touched: IntTensor<Self>,
             rows: usize,
         ) -> FloatTensor<Self> {
-            let (sample_grads, colour_weights) = (into_contiguous(sample_grads), into_contiguous(colour_weights));
-            let (order, offsets, touched) =
-                (into_contiguous(order), into_contiguous(offsets), into_contiguous(touched));
-            let compact = touched.shape().num_elements() > 0;
-            let (shape, client, device) =
-                (Shape::new([rows, 3]), sample_grads.client.clone(), sample_grads.device.clone());
-            // A compact transpose writes only the rows it reads: the others are zeros.
-            let out = match compact {
-                true => zeros_client(client.clone(), device, shape, sample_grads.dtype),
-                false => empty_device_dtype(client.clone(), device, shape, sample_grads.dtype),
-            };
-            let units = 3 * if compact { touched.shape().num_elements() } else { rows };
-            if units == 0 {
-                return out;
-            }
-            let (cube_count, cube_dim) = one_per_value(&client, units);
-            let dtypes = [storage(sample_grads.dtype), storage(order.dtype)];
-            // The full form never reads `touched`: any bound buffer will do (not an empty one).
-            let touched = if compact { touched } else { offsets.clone() };
-            row_grads_kernel::launch(
-                &client,
-                cube_count,
-                cube_dim,
-                sample_grads.into_tensor_arg(),
-                colour_weights.into_tensor_arg(),
-                order.into_tensor_arg(),
-                offsets.into_tensor_arg(),
-                touched.into_tensor_arg(),
-                out.clone().into_tensor_arg(),
-                units as u32,
-                compact,
-                dtypes,
-            );
-            out
+            // Entry `e` is sample `e / 8`'s corner `e % 8`.
+            sum_weighted_by_rows(sample_grads, Some((colour_weights, 8)), order, offsets, touched, rows)
         }
     }
 

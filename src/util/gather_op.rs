@@ -209,7 +209,7 @@ pub fn write_rows(tensor: Tensor<2>, idx: &Tensor<1, Int>, values: Tensor<2>, op
 #[cfg(feature = "wgpu")]
 pub use cube_op::GatherBackend;
 #[cfg(feature = "wgpu")]
-pub(crate) use cube_op::one_per_value;
+pub(crate) use cube_op::{one_per_value, sum_weighted_by_rows};
 
 /// The operation on the cubecl backend and autodiff over it.
 #[cfg(feature = "wgpu")]
@@ -290,17 +290,23 @@ mod cube_op {
 
     /// One thread per output value: the row's entries summed in `order`.
     /// `compact`: the runs are those of the rows `touched` (the other rows'
-    /// zeros are already written), else run `k` is row `k`'s.
+    /// zeros are already written), else run `k` is row `k`'s. `weighted`:
+    /// entry `e` adds `grad`'s row `e / group` times `weights[e]` (the
+    /// fused colour pass's backward, `field::frozen_op`), else `grad`'s
+    /// row `e`.
     #[cube(launch)]
     #[allow(clippy::too_many_arguments)]
     fn sum_by_rows_kernel<F: Float, I: Numeric>(
         grad: &Tensor<F>,
+        weights: &Tensor<F>,
         order: &Tensor<I>,
         offsets: &Tensor<I>,
         touched: &Tensor<I>,
         out: &mut Tensor<F>,
         cols: u32,
+        group: u32,
         #[comptime] compact: bool,
+        #[comptime] weighted: bool,
         #[define(F, I)] _dtypes: [ElemType; 2],
     ) {
         let pos = ABSOLUTE_POS;
@@ -320,7 +326,11 @@ mod cube_op {
             let end = u32::cast_from(offsets[run + 1]) as usize;
             for k in start..end {
                 let entry = u32::cast_from(order[k]) as usize;
-                acc += grad[entry * c + col];
+                if weighted {
+                    acc += grad[(entry / group as usize) * c + col] * weights[entry];
+                } else {
+                    acc += grad[entry * c + col];
+                }
             }
         }
         let mut row = run;
@@ -482,6 +492,20 @@ mod cube_op {
         touched: CubeTensor,
         rows: usize,
     ) -> CubeTensor {
+        sum_weighted_by_rows(grad, None, order, offsets, touched, rows)
+    }
+
+    /// `sum_by_rows` where `weighted` is `Some((weights, group))`: entry
+    /// `e` of the transpose adds `grad`'s row `e / group` times
+    /// `weights[e]` (`[entries]`), the fused colour pass's backward.
+    pub(crate) fn sum_weighted_by_rows(
+        grad: CubeTensor,
+        weighted: Option<(CubeTensor, usize)>,
+        order: CubeTensor,
+        offsets: CubeTensor,
+        touched: CubeTensor,
+        rows: usize,
+    ) -> CubeTensor {
         let grad = into_contiguous(grad);
         let (order, offsets, touched) = (into_contiguous(order), into_contiguous(offsets), into_contiguous(touched));
         let cols = grad.shape()[1];
@@ -501,19 +525,28 @@ mod cube_op {
         }
         let (cube_count, cube_dim) = one_per_value(&client, units);
         let dtypes = [storage(grad.dtype), storage(order.dtype)];
-        // The full form never reads `touched`: any bound buffer will do (not an empty one).
+        // The full form never reads `touched`, nor the plain sum `weights`:
+        // any bound buffer will do (not an empty one).
         let touched = if compact { touched } else { offsets.clone() };
+        let is_weighted = weighted.is_some();
+        let (weights, group) = match weighted {
+            Some((weights, group)) => (into_contiguous(weights), group),
+            None => (grad.clone(), 1),
+        };
         sum_by_rows_kernel::launch(
             &client,
             cube_count,
             cube_dim,
             grad.into_tensor_arg(),
+            weights.into_tensor_arg(),
             order.into_tensor_arg(),
             offsets.into_tensor_arg(),
             touched.into_tensor_arg(),
             out.clone().into_tensor_arg(),
             cols as u32,
+            group as u32,
             compact,
+            is_weighted,
             dtypes,
         );
         out
