@@ -15,6 +15,10 @@ writes lego_reference.png (content | reference), lego_test_views.png
 (four of the Ref-NPR renders above ARF's at the same cameras) and both
 GIFs (frames wider than GIF_WIDTH are halved, so a 504x378 spiral stays a
 few MB).
+
+One row of images at half size (a reference beside a run's test views):
+    python3 scripts/make_gallery.py --row NAME.png IMAGE...
+writes assets/gallery/NAME.png.
 """
 import shutil
 import sys
@@ -83,6 +87,11 @@ def small_gif(src, dst):
 def main():
     out = Path(__file__).resolve().parent.parent / "assets" / "gallery"
     out.mkdir(parents=True, exist_ok=True)
+    if len(sys.argv) >= 4 and sys.argv[1] == "--row":
+        images = [on_white(p) for p in sys.argv[3:]]
+        row([im.resize((im.width // 2, im.height // 2), Image.LANCZOS) for im in images]).save(out / sys.argv[2])
+        print(f"wrote {out / sys.argv[2]}")
+        return
     if len(sys.argv) == 6 and sys.argv[1] == "--scene":
         scene_gallery(sys.argv[2], *(Path(a) for a in sys.argv[3:]), out)
         print(f"gallery written to {out}")
