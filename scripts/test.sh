@@ -3,7 +3,7 @@
 #   flex:    everything (unit tests, renderer, datasets, training, stylization, evaluation, demo, CLI), then examples/orbit.rs
 #            and the README's quick start (scripts/check_docs.py: also the README's length and every doc link)
 #   ndarray: renderer, grid, VGG16, the stylization losses / TCM / deferred back-propagation, the metrics, the notebook API
-#   wgpu:    the same plus training, through Mesa's software Vulkan when no GPU is present
+#   wgpu:    renderer, training, VGG16 (without its two real-weight tests), metrics, the notebook API and its whole pipeline, through Mesa's software Vulkan when no GPU is present
 #   (end-to-end stylization and the demo run on flex only: VGG on lavapipe or ndarray is 10-100x slower)
 #   exports: the example's runs as splats and a mesh, opened in headless Chromium (npm viewers) and trimesh
 #   real data (../shared/data: lego, fern): loaders and a short fit, when that folder exists
@@ -15,14 +15,17 @@ export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 # (~/.cache/refnpr/costs.jsonl), whose estimates they would skew.
 REFNPR_COSTS="$(mktemp -d)/costs.jsonl"
 export REFNPR_COSTS
+# Each stage prints the seconds since the suite started, so a CI log shows
+# where its time went (CI stops at 90 minutes).
+stage() { echo "== $* [${SECONDS} s]"; }
 
-echo "== formatting"
+stage "formatting"
 cargo fmt --check
-echo "== layering (imports point down the stage table of src/lib.rs)"
+stage "layering (imports point down the stage table of src/lib.rs)"
 python3 scripts/check_layers.py
-echo "== docs: README.md at most 300 lines, every relative link in README.md and docs/ resolving"
+stage "docs: README.md at most 300 lines, every relative link in README.md and docs/ resolving"
 python3 scripts/check_docs.py
-echo "== dependency tree: licences, bans, sources (cargo-deny, deny.toml)"
+stage "dependency tree: licences, bans, sources (cargo-deny, deny.toml)"
 command -v cargo-deny >/dev/null 2>&1 || {
   echo "error: cargo-deny not found (install it with: cargo install --locked cargo-deny)" >&2
   exit 1
@@ -39,51 +42,57 @@ RUSTC_WORKSPACE_WRAPPER="$(command -v clippy-driver)" || {
 export RUSTC_WORKSPACE_WRAPPER
 export CLIPPY_ARGS="-D__CLIPPY_HACKERY__warnings__CLIPPY_HACKERY__"
 
-echo "== flex: full suite"
+stage "flex: full suite"
 REFNPR_BACKEND=flex cargo test --all-targets
 
-echo "== the front API's example: procedural scene to stylized orbit (flex)"
+stage "the front API's example: procedural scene to stylized orbit (flex)"
 REFNPR_BACKEND=flex cargo run --example orbit -- target/example-orbit
 test -s target/example-orbit/orbit/path.gif
 
-echo "== the README's quick start, its commands read from README.md and run as written (flex)"
+stage "the README's quick start, its commands read from README.md and run as written (flex)"
 rm -rf demo-out
 REFNPR_BACKEND=flex python3 scripts/check_docs.py --run-quickstart
 test -s demo-out/eval.json && test -s demo-out/stylized/splats.ply && test -s demo-out/site/index.html
 rm -rf demo-out
 
-echo "== exports in other tools: splats in a browser splat renderer, the mesh in three.js and trimesh (the example's runs)"
+stage "exports in other tools: splats in a browser splat renderer, the mesh in three.js and trimesh (the example's runs)"
 BIN="target/${CARGO_BUILD_TARGET:+$CARGO_BUILD_TARGET/}debug/refnpr"
 bash scripts/check_exports.sh "$BIN" target/example-orbit/photo target/example-orbit/stylized
-echo "== refnpr view in a browser: the page against refnpr render, the static copy, a live reload (the example's runs; a 360° twin's field with a far background)"
+stage "refnpr view in a browser: the page against refnpr render, the static copy, a live reload (the example's runs; a 360° twin's field with a far background)"
 rm -rf target/far-twin
 "$BIN" scene --out target/far-twin/scene --environment --size 48 >/dev/null
 "$BIN" train --data target/far-twin/scene --out target/far-twin/photo --steps 300 --config configs/far_background.toml >/dev/null
 bash scripts/check_view.sh "$BIN" target/example-orbit/stylized target/example-orbit/photo target/far-twin/photo
-echo "== checkpoints read without refnpr (Python's safetensors and numpy)"
+stage "checkpoints read without refnpr (Python's safetensors and numpy)"
 python3 scripts/check_checkpoint.py target/example-orbit/photo/checkpoint.bin target/example-orbit/stylized/checkpoint.bin target/far-twin/photo/checkpoint.bin
 
-echo "== docs: the library's rustdoc, warnings (broken links included) denied"
+stage "docs: the library's rustdoc, warnings (broken links included) denied"
 RUSTDOCFLAGS="-D warnings" cargo doc --no-deps --lib --quiet
-echo "== doc examples (compiled; run unless marked no_run)"
+stage "doc examples (compiled; run unless marked no_run)"
 REFNPR_BACKEND=flex cargo test --doc
 
 STYLIZE_UNITS=(--skip tiny_scene --skip arf_baseline --skip bad_input --skip robustness --skip a_killed_stylization --skip a_far_background)
 
-echo "== ndarray: renderer, grid, VGG16, stylization units, metrics"
+stage "ndarray: renderer, grid, VGG16, stylization units, metrics"
 REFNPR_BACKEND=ndarray cargo test --test renderer --test vgg --test evaluation --test notebook --lib
 REFNPR_BACKEND=ndarray cargo test --test stylize -- "${STYLIZE_UNITS[@]}"
 
-echo "== wgpu: renderer, training, VGG16, stylization units, metrics"
-REFNPR_BACKEND=wgpu cargo test --test renderer --test training --test vgg --test evaluation --test notebook
+stage "wgpu: renderer, training, VGG16, metrics, the whole pipeline"
+# On lavapipe (2 CPU cores) the stylization units took 1303 s and VGG16's
+# two real-weight tests most of vgg's 201 s, past what CI allows (90 min for
+# everything): they run on flex and ndarray above, and wgpu's stylization is
+# checked end to end by the notebook test's whole pipeline against a CPU
+# backend's.
+REFNPR_BACKEND=wgpu cargo test --test renderer --test training --test evaluation --test notebook
+REFNPR_BACKEND=wgpu cargo test --test vgg -- --skip real_weights_match_objects_across_views --skip staged_forward_matches_the_imported_graph
 # The plain-Rust kernels against the Burn graph (unit tests inside the crate).
 REFNPR_BACKEND=wgpu cargo test --lib graph_oracle
-REFNPR_BACKEND=wgpu cargo test --test stylize -- "${STYLIZE_UNITS[@]}"
 
 DATA="${REFNPR_SHARED_DATA:-../shared/data}"
 if [ -d "$DATA/nerf_synthetic/lego" ] && [ -d "$DATA/nerf_llff_data/fern" ]; then
-  echo "== real data group ($DATA)"
+  stage "real data group ($DATA)"
   REFNPR_SHARED_DATA="$DATA" REFNPR_BACKEND=flex cargo test --test real_data -- --ignored
 else
-  echo "== real data group NOT RUN: $DATA/{nerf_synthetic/lego,nerf_llff_data/fern} not found"
+  stage "real data group NOT RUN: $DATA/{nerf_synthetic/lego,nerf_llff_data/fern} not found"
 fi
+stage "suite done"
