@@ -711,24 +711,33 @@ fn the_gate_reads_the_image_a_reference_was_painted_over() {
     use refnpr::reference::case::ReferenceCase;
     use refnpr::stylize::styles::painted_over;
     let t = TempDir::new("painted-over");
-    let (w, h) = (8, 6);
+    let scene = t.path().join("scene");
+    let opts =
+        procedural::SceneOptions { seed: 2, size: 16, num_train: 2, num_val: 1, num_test: 1, environment: false };
+    procedural::write_scene(&scene, &opts).unwrap();
+    let dataset = data::load(&scene, &Default::default()).unwrap();
+    let (w, h) = (16, 16);
     let content = Image::new(w, h, (0..w * h * 3).map(|i| (i % 7) as f32 / 7.0).collect());
     let style = Image::new(w, h, content.rgb.iter().map(|v| 1.0 - v).collect());
     let case_dir = t.path().join("case");
     std::fs::create_dir_all(&case_dir).unwrap();
     style.save_png(&case_dir.join("style.png")).unwrap();
-    std::fs::write(case_dir.join("reference.toml"), "[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\n")
-        .unwrap();
-    let case = ReferenceCase::load(&case_dir).unwrap();
+    let one = "[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\n";
+    std::fs::write(case_dir.join("reference.toml"), one).unwrap();
+    let case = || ReferenceCase::load(&case_dir).unwrap();
     let bg = [1.0, 1.0, 1.0];
-    assert!(painted_over(&case, std::slice::from_ref(&style), bg).is_none(), "no content.png");
+    assert!(painted_over(&case(), &dataset, bg).is_none(), "no content.png");
     content.save_png(&case_dir.join("content.png")).unwrap();
-    let over = painted_over(&case, std::slice::from_ref(&style), bg).expect("content.png is read");
-    let err = over.rgb.iter().zip(&content.rgb).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-    assert!(err <= 0.5 / 255.0 + 1e-6, "content.png as written, to 8 bits: {err}");
-    assert!(painted_over(&case, &[style.clone(), style.clone()], bg).is_none(), "two references");
-    let other = Image::new(w + 1, h, vec![0.5; (w + 1) * h * 3]);
-    assert!(painted_over(&case, &[other], bg).is_none(), "a style of another size");
+    let (over, painted) = painted_over(&case(), &dataset, bg).expect("content.png is read");
+    let max_err = |a: &Image, b: &Image| a.rgb.iter().zip(&b.rgb).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    assert!(max_err(&over, &content) <= 0.5 / 255.0 + 1e-6, "content.png as written, to 8 bits");
+    assert!(max_err(&painted, &style) <= 0.5 / 255.0 + 1e-6, "style.png as written, to 8 bits");
+    let two = format!("{one}[[reference]]\nstyle = \"style.png\"\nview = \"train:1\"\n");
+    std::fs::write(case_dir.join("reference.toml"), two).unwrap();
+    assert!(painted_over(&case(), &dataset, bg).is_none(), "two references");
+    std::fs::write(case_dir.join("reference.toml"), one).unwrap();
+    Image::new(w + 1, h, vec![0.5; (w + 1) * h * 3]).save_png(&case_dir.join("content.png")).unwrap();
+    assert!(painted_over(&case(), &dataset, bg).is_none(), "a content.png of another size");
 }
 
 /// A recolouring reference (training view 0 colour-graded, hues rotated)

@@ -23,6 +23,16 @@ pub enum LrSchedule {
     Shared,
 }
 
+impl LrSchedule {
+    /// The name the config file gives it.
+    pub fn name(self) -> &'static str {
+        match self {
+            LrSchedule::PerPhase => "per_phase",
+            LrSchedule::Shared => "shared",
+        }
+    }
+}
+
 /// Where the cached sample lists (L_ref's pseudo-rays, the training views)
 /// are kept for the image epochs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -330,6 +340,12 @@ pub struct ColourMapConfig {
     /// `prior` of a recolouring's map: lego's far side shows colours its
     /// reference view barely does, and a grade's affine part carries to them.
     pub recolour_prior: MapPrior,
+    /// `[schedule] lr_schedule` of a recolouring recognised before the
+    /// refit (measured on the content.png it was painted over; a case
+    /// without one keeps `[schedule] lr_schedule`): `per_phase` gained
+    /// 0.4-1.1 dB on recolourings of the twin and of lego, and cost painted
+    /// references on the twin (docs/results.md).
+    pub recolour_lr_schedule: LrSchedule,
     /// Bins per colour axis of the fitted offsets.
     pub bins: usize,
     /// Width (colour units, [0, 1] per channel) of the Gaussian that mixes nearby bins.
@@ -355,6 +371,7 @@ impl Default for ColourMapConfig {
             recolour_patch: 4,
             recolour_sigma: 0.03,
             recolour_prior: MapPrior::Affine,
+            recolour_lr_schedule: LrSchedule::PerPhase,
             bins: 16,
             sigma: 0.08,
             prior_pixels: 4.0,
@@ -364,6 +381,11 @@ impl Default for ColourMapConfig {
 }
 
 impl ColourMapConfig {
+    /// Whether Ref-NPR fits the map at all (any of its uses on).
+    pub fn is_on(&self) -> bool {
+        self.init_field || self.colour_targets || self.mapped_content
+    }
+
     /// The map's settings for a recolouring (`recolour_sigma`, `recolour_prior`).
     pub fn recolouring(&self) -> ColourMapConfig {
         ColourMapConfig { sigma: self.recolour_sigma, prior: self.recolour_prior, ..self.clone() }

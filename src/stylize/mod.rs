@@ -72,6 +72,7 @@ impl std::fmt::Display for Method {
 }
 
 /// What `refnpr stylize` is asked to do.
+#[derive(Debug, Clone)]
 pub struct StylizeJob {
     pub photo: PathBuf,
     pub case: PathBuf,

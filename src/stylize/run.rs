@@ -84,6 +84,8 @@ impl Inputs {
 pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeReport> {
     let started = Instant::now();
     let Inputs { ck, dataset, case, image_size } = Inputs::load(job, progress)?;
+    let explained_on_content = explained_on_content(job, &case, &dataset, ck.meta.background);
+    let job = &with_recolouring_schedule(job, explained_on_content);
     let _lock = OutputLock::acquire(&job.out)?;
     let resumed = if job.resume { ResumeState::load(job)? } else { None };
     let epochs = job.config.schedule.ray_epochs as f64 + job.config.schedule.image_epochs as f64;
@@ -114,7 +116,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         st.step.stylize_far(progress);
     }
     let colour = job.method == Method::RefNpr && job.config.ablation.use_colour_loss && case.color_pre;
-    st.fit_colour_map(&styles, painted_over(&case, &styles, ck.meta.background).as_ref(), progress);
+    st.fit_colour_map(&styles, explained_on_content, progress);
     let (guidance, colour_matched) = st.content_phase(&styles, colour, image_size, &mut phases, progress)?;
     st.recolour_field();
     let sample_cache = st.step.samples.report(job.config.sample_cache_mb);
@@ -289,24 +291,21 @@ impl<'a> Stylization<'a> {
 
     /// Ref-NPR with `[colour_map]` on: fits the references' colour mapping
     /// on their content renders from the refit field. Whether it is a
-    /// recolouring is measured against `painted_over` (content.png) where
-    /// the case keeps it: the refit render differs from the photo render by
-    /// the refit's own error, which can outweigh a mild grade's whole change
-    /// (lego teal-orange: 45 % explained on the refit render).
-    fn fit_colour_map(&mut self, styles: &[Image], painted_over: Option<&Image>, progress: &dyn Progress) {
+    /// recolouring is measured on content.png where the case keeps it
+    /// (`explained_on_content`): the refit render differs from the photo
+    /// render by the refit's own error, which can outweigh a mild grade's
+    /// whole change (lego teal-orange: 45 % explained on the refit render).
+    fn fit_colour_map(&mut self, styles: &[Image], explained_on_content: Option<f32>, progress: &dyn Progress) {
         let cfg = &self.job.config.colour_map;
-        if self.job.method != Method::RefNpr || !(cfg.init_field || cfg.colour_targets || cfg.mapped_content) {
+        if self.job.method != Method::RefNpr || !cfg.is_on() {
             return;
         }
         let contents: Vec<Image> = (0..styles.len()).map(|r| self.step.render_reference(r)).collect();
         let pairs: Vec<(&Image, &Image)> = contents.iter().zip(styles).collect();
         let map = ColourMap::fit(&pairs, cfg, self.step.background());
-        let (explained, explained_on) = match (painted_over, styles) {
-            (Some(over), [style]) => {
-                let painted = [(over, style)];
-                (ColourMap::fit(&painted, cfg, self.step.background()).explained(&painted), "content.png")
-            }
-            _ => (map.explained(&pairs), "the refit render"),
+        let (explained, explained_on) = match explained_on_content {
+            Some(e) => (e, "content.png"),
+            None => (map.explained(&pairs), "the refit render"),
         };
         let recolouring = explained >= cfg.recolour_explained;
         let report = ColourMapReport { pixels: map.pixels, explained, explained_on, recolouring };
@@ -320,8 +319,10 @@ impl<'a> Stylization<'a> {
             100.0 * explained,
             match report.recolouring {
                 true => format!(
-                    ": a recolouring (the map fitted again sharper, L_color {} over {}-pixel patches)",
-                    cfg.recolour_weight, cfg.recolour_patch
+                    ": a recolouring (the map fitted again sharper, L_color {} over {}-pixel patches, the {} learning-rate schedule)",
+                    cfg.recolour_weight,
+                    cfg.recolour_patch,
+                    self.job.config.schedule.lr_schedule.name()
                 ),
                 false => String::new(),
             }
@@ -645,6 +646,38 @@ fn style_side(
 }
 
 /// Whether the content features of every view are kept (λ' > 0).
+/// What a one-reference case's colour map explains of its painting,
+/// measured on the image it was painted over (`painted_over`: content.png),
+/// before any work on the field. None for ARF, with the colour map off, or
+/// for a case without content.png (then measured on the refit render,
+/// after the refit).
+fn explained_on_content(
+    job: &StylizeJob,
+    case: &ReferenceCase,
+    dataset: &Dataset,
+    background: [f32; 3],
+) -> Option<f32> {
+    if job.method != Method::RefNpr || !job.config.colour_map.is_on() {
+        return None;
+    }
+    let (content, style) = painted_over(case, dataset, background)?;
+    let pair = [(&content, &style)];
+    Some(ColourMap::fit(&pair, &job.config.colour_map, background).explained(&pair))
+}
+
+/// The job as it runs: a recolouring recognised on content.png takes
+/// `[colour_map] recolour_lr_schedule` for the whole stylization, the
+/// refit included (it must be known before the refit's first step). The
+/// run's stylize.json and resume key carry the schedule it ran with.
+fn with_recolouring_schedule(job: &StylizeJob, explained_on_content: Option<f32>) -> StylizeJob {
+    let mut job = job.clone();
+    let cm = &job.config.colour_map;
+    if explained_on_content.is_some_and(|e| e >= cm.recolour_explained) {
+        job.config.schedule.lr_schedule = cm.recolour_lr_schedule;
+    }
+    job
+}
+
 fn keeps_content(job: &StylizeJob) -> bool {
     let cfg = &job.config;
     match job.method {
@@ -782,6 +815,69 @@ fn job_name(method: Method) -> String {
 mod tests {
     use super::*;
     use crate::util::costs::Ledger;
+
+    /// A recolouring told by content.png runs with `[colour_map]
+    /// recolour_lr_schedule` from the refit's first step on; painted
+    /// strokes, ARF, the colour map off and a case without content.png
+    /// keep `[schedule] lr_schedule`.
+    #[test]
+    fn a_recolouring_on_content_png_takes_its_own_schedule() {
+        use crate::scene::data::{self, procedural};
+        use crate::stylize::config::LrSchedule;
+        let dir = crate::test_support::temp_dir("recolour-schedule");
+        let opts =
+            procedural::SceneOptions { seed: 2, size: 48, num_train: 1, num_val: 1, num_test: 1, environment: false };
+        procedural::write_scene(&dir.join("scene"), &opts).unwrap();
+        let dataset = data::load(&dir.join("scene"), &Default::default()).unwrap();
+        let view = &dataset.train[0];
+        let (w, h) = (view.camera.intrinsics.width as usize, view.camera.intrinsics.height as usize);
+        let case_dir = dir.join("case");
+        std::fs::create_dir_all(&case_dir).unwrap();
+        std::fs::write(case_dir.join("reference.toml"), "[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\n")
+            .unwrap();
+        Image::new(w, h, view.rgb.clone()).save_png(&case_dir.join("content.png")).unwrap();
+        // A function of colour alone (channels swapped), and yellow stripes
+        // painted over every other 4-pixel column (a function of position).
+        let swapped: Vec<f32> = view.rgb.chunks_exact(3).flat_map(|c| [c[1], c[2], c[0]]).collect();
+        let striped: Vec<f32> = (0..w * h)
+            .flat_map(|i| match (i % w / 4) % 2 {
+                0 => [1.0, 0.9, 0.1],
+                _ => [view.rgb[3 * i], view.rgb[3 * i + 1], view.rgb[3 * i + 2]],
+            })
+            .collect();
+        let schedule = |style: &[f32], method: Method, config: StylizeConfig| {
+            Image::new(w, h, style.to_vec()).save_png(&case_dir.join("style.png")).unwrap();
+            let case = ReferenceCase::load(&case_dir).unwrap();
+            let job = StylizeJob {
+                photo: dir.join("photo"),
+                case: case_dir.clone(),
+                out: dir.join("out"),
+                config,
+                method,
+                backend: Default::default(),
+                style: None,
+                data: None,
+                registration: None,
+                render_test: false,
+                resume: false,
+            };
+            let explained = explained_on_content(&job, &case, &dataset, dataset.background);
+            with_recolouring_schedule(&job, explained).config.schedule.lr_schedule
+        };
+        let defaults = StylizeConfig::default();
+        assert_eq!(defaults.schedule.lr_schedule, LrSchedule::Shared);
+        assert_eq!(schedule(&swapped, Method::RefNpr, defaults.clone()), LrSchedule::PerPhase, "a recolouring");
+        assert_eq!(schedule(&striped, Method::RefNpr, defaults.clone()), LrSchedule::Shared, "painted stripes");
+        assert_eq!(schedule(&swapped, Method::Arf, defaults.clone()), LrSchedule::Shared, "ARF");
+        let mut off = defaults.clone();
+        (off.colour_map.init_field, off.colour_map.colour_targets) = (false, false);
+        assert_eq!(schedule(&swapped, Method::RefNpr, off), LrSchedule::Shared, "the colour map off");
+        let mut shared = defaults.clone();
+        shared.colour_map.recolour_lr_schedule = LrSchedule::Shared;
+        assert_eq!(schedule(&swapped, Method::RefNpr, shared), LrSchedule::Shared, "recolour_lr_schedule = shared");
+        std::fs::remove_file(case_dir.join("content.png")).unwrap();
+        assert_eq!(schedule(&swapped, Method::RefNpr, defaults), LrSchedule::Shared, "no content.png");
+    }
 
     /// Both methods find the reference machine's record before this machine has one.
     #[test]

@@ -99,19 +99,24 @@ pub fn read_styles(
         .collect()
 }
 
-/// The image a one-reference case was painted over, where the case keeps
-/// it: `refnpr reference` writes the view's photoreal render as
-/// content.png beside reference.toml. None for other cases, or when the
-/// file is missing or not of the reference view's size.
-pub fn painted_over(case: &ReferenceCase, styles: &[Image], background: [f32; 3]) -> Option<Image> {
-    let [style] = styles else { return None };
+/// A one-reference case's painting and the image it was painted over,
+/// where the case keeps it: `refnpr reference` writes the view's photoreal
+/// render as content.png beside reference.toml. Both at the reference
+/// view's size, so this is known before any work on the field (a
+/// recolouring's schedule is chosen from it before the refit). None for
+/// other cases, or when content.png is missing, unreadable or not of the
+/// view's size.
+pub fn painted_over(case: &ReferenceCase, dataset: &Dataset, background: [f32; 3]) -> Option<(Image, Image)> {
+    let [spec] = &case.references[..] else { return None };
+    let camera = case.cameras(dataset).ok()?.into_iter().next()?;
+    let (w, h) = (camera.intrinsics.width, camera.intrinsics.height);
     let path = case.dir.join("content.png");
-    let (w, h) = image::image_dimensions(&path).ok()?;
-    if (w as usize, h as usize) != (style.width, style.height) {
+    if image::image_dimensions(&path).ok()? != (w, h) {
         return None;
     }
-    let (rgb, _) = case::read_style(&path, w, h, background).ok()?;
-    Some(Image::new(style.width, style.height, rgb))
+    let (content, _) = case::read_style(&path, w, h, background).ok()?;
+    let (style, _) = case::read_style(&spec.style, w, h, background).ok()?;
+    Some((camera.image_of(content), camera.image_of(style)))
 }
 
 /// Mean and covariance of the colours of `images` (interleaved RGB
