@@ -13,8 +13,8 @@ each rendered with `refnpr render --run RUN --path test|spiral --out RUN/test`:
     python3 scripts/make_gallery.py --scene lego CASE REFNPR_RUN ARF_RUN
 writes lego_reference.png (content | reference), lego_test_views.png
 (four of the Ref-NPR renders above ARF's at the same cameras) and both
-GIFs (frames wider than GIF_WIDTH are halved, so a 504x378 spiral stays a
-few MB).
+GIFs (images and frames wider than GIF_WIDTH are halved, so a 504x378
+spiral stays a few MB).
 
 One row of images at half size (a reference beside a run's test views):
     python3 scripts/make_gallery.py --row NAME.png IMAGE...
@@ -57,13 +57,18 @@ def enlarge(im):
     return im.resize((im.width * SCALE, im.height * SCALE), Image.NEAREST)
 
 
+def small(im):
+    """Halves an image wider than GIF_WIDTH (a 504x378 fern frame)."""
+    return im if im.width <= GIF_WIDTH else im.resize((im.width // 2, im.height // 2), Image.LANCZOS)
+
+
 def scene_gallery(name, case, refnpr, arf, out):
-    reference = row([on_white(case / "content.png"), on_white(case / "style.png")])
+    reference = row([small(on_white(case / "content.png")), small(on_white(case / "style.png"))])
     reference.save(out / f"{name}_reference.png")
     frames = sorted((refnpr / "test/rgb").glob("*.png"))
     picks = sorted({frames[i * len(frames) // 4].name for i in range(4)})
-    top = row([on_white(refnpr / "test/rgb" / f) for f in picks])
-    bottom = row([on_white(arf / "test/rgb" / f) for f in picks])
+    top = row([small(on_white(refnpr / "test/rgb" / f)) for f in picks])
+    bottom = row([small(on_white(arf / "test/rgb" / f)) for f in picks])
     column([top, bottom]).save(out / f"{name}_test_views.png")
     small_gif(refnpr / "test/path.gif", out / f"{name}_refnpr.gif")
     small_gif(arf / "test/path.gif", out / f"{name}_arf.gif")
