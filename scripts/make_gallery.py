@@ -80,11 +80,10 @@ def small_gif(src, dst):
     if gif.width <= GIF_WIDTH:
         shutil.copy(src, dst)
         return
-    size = (gif.width // 2, gif.height // 2)
     frames, durations = [], []
     for i in range(gif.n_frames):
         gif.seek(i)
-        frames.append(gif.convert("RGB").resize(size, Image.LANCZOS))
+        frames.append(small(gif.convert("RGB")))
         durations.append(gif.info.get("duration", 40))
     frames[0].save(dst, save_all=True, append_images=frames[1:], duration=durations, loop=0)
 
