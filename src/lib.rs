@@ -5,12 +5,12 @@
 //! | --- | --- |
 //! | `util` | backend choice, tensor helpers, the GPU row kernels (CubeCL), the one `Image` type and its files, the image metrics (PSNR, SSIM, speckle), file writes, progress events, per-step RNG, memory readings, phase costs |
 //! | `scene` | cameras, rays, NDC, camera paths, the SH basis; dataset loaders (Blender, LLFF, NSVF, COLMAP models, `transforms.json`, the procedural scene) |
-//! | `vgg` | the ONNX-imported VGG16, block descriptors and nearest neighbours |
+//! | `vgg` | the feature networks: the ONNX-imported VGG16 with Oxford's or torchvision's weights, AlexNet, the embedded LPIPS weights, block descriptors and nearest neighbours |
 //! | `field` | the radiance grid, ray marching (plain Rust), compositing (Burn graph), the view renderer (kernel chosen once), camera-path renders, the frozen-density colour renderer, what the optimisers share (RMSprop, TV, row subsets), checkpoints |
 //! | `photo` | stage 1: fitting the photorealistic field (config, `Trainer::step_once`, the training run, its test-view evaluation) |
 //! | `reference` | stage 2: reference cases and style images, R³ (plain Rust), the `reference` / `register` commands |
 //! | `stylize` | stage 3: Ref-NPR (R³ + TCM + colour matching) and the ARF baseline: config, losses, TCM, the style field, the sample cache, the step (`StyleStep`), the guides, the run (the loops) |
-//! | `eval` | the stylization metrics (Ref-LPIPS, ground-truth PSNR, warp stability, speckle) |
+//! | `eval` | LPIPS as the `lpips` package computes it, and the stylization metrics (Ref-LPIPS, ground-truth PSNR, warp stability, speckle) |
 //! | `export` | results out: Gaussian splats (3DGS PLY), the iso-surface as a coloured mesh (glb, PLY), MP4 through ffmpeg, surface points |
 //! | `view` | the browser viewer: the field packed as WebGL2 textures, the page (HTML, JavaScript, GLSL), the local server, the static copy |
 //! | `tools` | `capture` (photos to a dataset through COLMAP), the benchmarks, the one-command demo, the robustness study, the fuzzer, the painterly repaint filter |

@@ -4,6 +4,7 @@
 mod common;
 
 use glam::{Mat4, Vec3};
+use refnpr::eval::lpips::{Lpips, LpipsNet};
 use refnpr::eval::stylization::{self as evaluation, SurfaceRender, Tolerance};
 use refnpr::scene::camera::{Camera, Intrinsics, look_at};
 use refnpr::util::image::Image;
@@ -134,4 +135,45 @@ fn ndc_points_map_back_onto_their_world_ray() {
             assert!((w.z + p.near).abs() < 1e-4, "{w:?}");
         }
     }
+}
+
+/// The fixture pair (tests/fixtures/lpips, made by models/make_lpips_fixtures.py)
+/// and the distances the numpy reference (scripts/lpips_reference.py) gives it.
+fn lpips_fixture() -> (Image, Image, serde_json::Value) {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/lpips");
+    let read = |name: &str| {
+        let (w, h, rgb) = refnpr::scene::data::read_rgb(&dir.join(name), [1.0; 3], 1).expect("fixture image");
+        Image::new(w as usize, h as usize, rgb)
+    };
+    let values = serde_json::from_str(&std::fs::read_to_string(dir.join("distances.json")).expect("fixture values"))
+        .expect("fixture JSON");
+    (read("a.png"), read("b.png"), values)
+}
+
+#[test]
+fn lpips_matches_the_numpy_reference_and_is_zero_on_the_same_image() {
+    let d = common::device();
+    let (a, b, expected) = lpips_fixture();
+    for (net, key) in [(LpipsNet::Vgg, "vgg"), (LpipsNet::Alex, "alex")] {
+        let lpips = Lpips::load(net, &d);
+        let got = lpips.distance(&a, &b).unwrap();
+        let want = expected[key].as_f64().expect("a distance") as f32;
+        assert!((got - want).abs() < common::tol(1e-4), "{key}: LPIPS {got} against the numpy reference's {want}");
+        let same = lpips.distance(&a, &a).unwrap();
+        assert!(same.abs() < 1e-6, "{key}: LPIPS of an image with itself {same}");
+        // Symmetric, as LPIPS is.
+        let back = lpips.distance(&b, &a).unwrap();
+        assert!((back - got).abs() < 1e-5, "{key}: {back} against {got}");
+    }
+}
+
+#[test]
+fn lpips_refuses_images_of_different_or_too_small_sizes() {
+    let d = common::device();
+    let lpips = Lpips::load(LpipsNet::Alex, &d);
+    let grey = |w: usize, h: usize| Image::new(w, h, vec![0.5; w * h * 3]);
+    let err = lpips.distance(&grey(40, 40), &grey(40, 48)).unwrap_err().to_string();
+    assert!(err.contains("40x40") && err.contains("40x48"), "{err}");
+    let err = lpips.distance(&grey(16, 40), &grey(16, 40)).unwrap_err().to_string();
+    assert!(err.contains("at least 32x32"), "{err}");
 }

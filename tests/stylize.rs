@@ -32,7 +32,7 @@ use refnpr::stylize::{Method, StepKind, StylizeJob, losses};
 use refnpr::tools::paint;
 use refnpr::util::image::Image;
 use refnpr::util::tensor::{floats, to_vec};
-use refnpr::vgg::{Vgg16, VggLayer, image_tensor};
+use refnpr::vgg::{Vgg16, VggLayer, VggWeights, image_tensor};
 
 fn value(t: Tensor<1>) -> f32 {
     to_vec(t)[0]
@@ -51,8 +51,18 @@ fn losses_match_hand_computed_values() {
     let b = floats(vec![0.0, 1.0, 2.0, 2.0], [2, 2], &d);
     assert!(close(value(losses::cosine_distance(a, b)), 0.5, tol));
     // Content: mean squared difference (2^2 + 0) / 2 = 2, in torchvision units.
-    let c = losses::content_loss(floats(vec![1.0, 2.0], [1, 2], &d), floats(vec![3.0, 2.0], [1, 2], &d));
+    let c = losses::content_loss(
+        floats(vec![1.0, 2.0], [1, 2], &d),
+        floats(vec![3.0, 2.0], [1, 2], &d),
+        VggWeights::Oxford,
+    );
     assert!(close(value(c), 2.0 / (losses::FEATURE_UNIT * losses::FEATURE_UNIT), tol));
+    let c = losses::content_loss(
+        floats(vec![1.0, 2.0], [1, 2], &d),
+        floats(vec![3.0, 2.0], [1, 2], &d),
+        VggWeights::Torchvision,
+    );
+    assert!(close(value(c), 2.0, tol), "torchvision's features are in torchvision's units");
     // Patch means of a 4x4 image in 2x2 patches: channel 0 holds 0..16.
     let mut img = vec![0.0f32; 3 * 16];
     for (i, v) in img.iter_mut().take(16).enumerate() {

@@ -13,7 +13,7 @@ use refnpr::scene::data::procedural::{ID_BACKGROUND, Scene};
 use refnpr::util::npy;
 use refnpr::util::tensor::{floats, to_vec};
 use refnpr::vgg::features::{multi_block_descriptors, nearest_by_dot};
-use refnpr::vgg::{Vgg16, VggError, VggForward, VggLayer, image_tensor};
+use refnpr::vgg::{Vgg16, VggError, VggForward, VggLayer, VggWeights, image_tensor};
 use std::path::PathBuf;
 use std::sync::OnceLock;
 
@@ -270,4 +270,49 @@ fn real_weights_match_objects_across_views() {
     println!("semantic match fraction: real weights {real:.3}, random weights {random:.3}");
     assert!(real >= 0.85, "real weights: {real:.3}");
     assert!(real - random >= 0.15, "real {real:.3} vs random {random:.3}");
+}
+
+/// torchvision's weights as embedded: the file's checksum, and
+/// torchvision's first filter (conv1_1, output 0, red channel, top row).
+#[test]
+fn torchvision_weights_are_torchvisions() {
+    assert_eq!(refnpr::vgg::weights::weights_sha256(), refnpr::vgg::weights::WEIGHTS_SHA256);
+    let (w, shape) = refnpr::vgg::weights::array("vgg.conv1.weight");
+    assert_eq!(shape, vec![64, 3, 3, 3]);
+    for (got, want) in w[..3].iter().zip([-0.5537f32, 0.1427, 0.5290]) {
+        assert!((got - want).abs() < 1e-4, "{got} against torchvision's {want}");
+    }
+}
+
+/// The torchvision model's input normalisation folded into conv1_1 is
+/// exact: `load_weights(Torchvision)` on x gives the features of the
+/// LPIPS-normalised model on the x' that LPIPS's scaling maps to the same
+/// network input, borders included.
+#[test]
+fn torchvision_normalisations_agree() {
+    let device = common::device();
+    let (w, h) = (36, 33);
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let x: Vec<f32> = (0..3 * w * h).map(|_| rng.random::<f32>()).collect();
+    let (mean, std) = ([0.485f32, 0.456, 0.406], [0.229f32, 0.224, 0.225]);
+    let lpips_mean = refnpr::vgg::LPIPS_SHIFT.map(|s| (1.0 + s) / 2.0);
+    let lpips_std = refnpr::vgg::LPIPS_SCALE.map(|s| s / 2.0);
+    // Planar [3, H, W]: channel c of x' = m_l + s_l (x - m_t) / s_t.
+    let x_lpips: Vec<f32> = x
+        .iter()
+        .enumerate()
+        .map(|(i, v)| {
+            let c = i / (w * h);
+            lpips_mean[c] + lpips_std[c] * (v - mean[c]) / std[c]
+        })
+        .collect();
+    let torch = Vgg16::load_weights(&device, VggWeights::Torchvision);
+    let lpips = Vgg16::lpips(&device);
+    let layers = [VggLayer::Relu1_2, VggLayer::Relu3_3];
+    let a = torch.features(floats(x, [1, 3, h, w], &device), &layers).unwrap();
+    let b = lpips.features(floats(x_lpips, [1, 3, h, w], &device), &layers).unwrap();
+    for layer in layers {
+        let err = max_rel_err(&to_vec(a.get(layer).clone()), &to_vec(b.get(layer).clone()));
+        assert!(err <= common::tol(1e-4), "{layer}: max rel err {err:.2e}");
+    }
 }

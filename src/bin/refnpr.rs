@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail, ensure};
 use clap::parser::ValueSource;
 use clap::{ArgMatches, CommandFactory, FromArgMatches, Parser, Subcommand};
+use refnpr::eval::lpips::LpipsNet;
 use refnpr::eval::stylization::{EvalJob, RobustnessViews};
 use refnpr::export::{self, ExportOptions, Format as ExportFormat};
 use refnpr::field::checkpoint::{self, Checkpoint};
@@ -344,6 +345,22 @@ enum Command {
         #[arg(long, value_enum, env = "REFNPR_BACKEND")]
         backend: Option<BackendKind>,
     },
+    /// LPIPS (v0.1, as the `lpips` package computes it) between two images: B is resized to A's size when they differ.
+    Lpips {
+        /// The first image (PNG or JPEG; alpha composited over --background).
+        a: PathBuf,
+        /// The second image.
+        b: PathBuf,
+        /// The feature network: vgg (the paper's Ref-LPIPS) or alex (the `lpips` package's default).
+        #[arg(long, value_enum, default_value_t = LpipsNet::Vgg)]
+        net: LpipsNet,
+        /// The colour transparent pixels are composited over, as R,G,B in [0, 1].
+        #[arg(long, value_delimiter = ',', num_args = 3, default_values_t = [1.0, 1.0, 1.0])]
+        background: Vec<f32>,
+        /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
+        #[arg(long, value_enum, env = "REFNPR_BACKEND")]
+        backend: Option<BackendKind>,
+    },
     /// Exports a run's field for other tools: Gaussian splats (3DGS PLY), a coloured mesh (glb or PLY), an MP4, surface points.
     Export {
         /// Run folder (or checkpoint file), photoreal or stylized.
@@ -645,6 +662,7 @@ fn run() -> Result<()> {
             Ok(())
         }
         Command::Info { json } => run_info(json),
+        Command::Lpips { a, b, net, background, backend } => run_lpips(&a, &b, net, &background, backend, &progress),
         Command::Fuzz { target, seconds, cases, case_seconds, seed, memory_mb, shared_data } => {
             let limits = fuzz::Limits { max_cases: cases, max_seconds: seconds, case_seconds, seed };
             run_fuzz(&target, &limits, memory_mb, &shared_data)
@@ -724,6 +742,25 @@ fn run_bench_stylize_command(command: Command, progress: &Console) -> Result<()>
 }
 
 /// `refnpr eval`: the stylization metrics (with `--reference`), or a photoreal run's test PSNR.
+/// `refnpr lpips A B`: the distance on stdout alone (for scripts), a resize on stderr.
+fn run_lpips(
+    a: &Path,
+    b: &Path,
+    net: LpipsNet,
+    background: &[f32],
+    backend: Option<BackendKind>,
+    progress: &Console,
+) -> Result<()> {
+    let device = backend_or_env(backend, progress)?.open(progress)?;
+    let background = [background[0], background[1], background[2]];
+    let (distance, note) = refnpr::eval::lpips::file_distance(a, b, net, background, &device)?;
+    if let Some(note) = note {
+        eprintln!("{note}");
+    }
+    println!("{distance:.6}");
+    Ok(())
+}
+
 fn run_eval(command: Command, progress: &Console) -> Result<()> {
     let Command::Eval {
         run,
@@ -1381,6 +1418,7 @@ mod tests {
             "register",
             "stylize",
             "eval",
+            "lpips",
             "export",
             "view",
             "demo",

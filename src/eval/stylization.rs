@@ -1,14 +1,14 @@
 //! Stylization metrics (paper section 4.3, supplementary A; SNeRF's
 //! consistency measure), computed from a stylized run and its reference case:
-//! - `ref_lpips`: perceptual distance between each style reference and the
-//!   stylized renders of the 10 render-path views nearest its camera. The
-//!   distance is LPIPS's unweighted "baseline" form (the `lpips` package with
-//!   `lpips=False`) on our VGG16: at relu1_2, relu2_2, relu3_3, relu4_3 and
-//!   relu5_3, channels unit-normalised per position, squared differences
-//!   summed over channels, averaged over positions, summed over layers. It is
-//!   not bit-identical to the paper's LPIPS (learned linear heads on
-//!   torchvision's VGG16), so compare our figures with each other, not with
-//!   the paper's table;
+//! - `ref_lpips`: the paper's Ref-LPIPS: LPIPS (`eval::lpips`, net vgg, as
+//!   the `lpips` package computes it) between each style reference and the
+//!   stylized renders of the 10 render-path views nearest its camera, by the
+//!   distance between camera centres (the paper's "nearest test novel
+//!   views": the path frames that see what the reference saw from about
+//!   where it saw it), averaged; `ref_lpips_alex` the same through AlexNet;
+//!   `ref_lpips_uncalibrated` the figure refnpr printed before: LPIPS's
+//!   unweighted form (`lpips=False`) on Oxford's VGG16, comparable only with
+//!   itself;
 //! - `gt_psnr`, `gt_psnr_occluded`: PSNR of the stylized test views against a
 //!   ground-truth stylized dataset (the procedural scene's `stylized/`), over
 //!   all pixels and over the surface pixels no reference camera sees; also
@@ -23,7 +23,8 @@
 //!   some channel (`metrics::speckle`); with a ground truth also on the test
 //!   views (`speckle_test`) and on the ground truth itself (`gt_speckle`,
 //!   same pixels), which says how much of it is real detail;
-//! - `robustness_psnr`: filled by the robustness study, `tools::robustness`.
+//! - `robustness_psnr`, `robustness_psnr_authors`: filled by the robustness
+//!   study, `tools::robustness` (refnpr's protocol and the authors').
 
 use std::path::{Path, PathBuf};
 
@@ -32,6 +33,7 @@ use glam::Vec3;
 use rayon::prelude::*;
 use serde::Serialize;
 
+use crate::eval::lpips::{Lpips, LpipsNet};
 use crate::field::checkpoint::{self, Checkpoint};
 use crate::field::view::ViewRenderer;
 use crate::reference::case::{self, ReferenceCase};
@@ -208,7 +210,12 @@ pub struct Stability {
 pub struct StylizationEval {
     pub run: PathBuf,
     pub reference: PathBuf,
+    /// LPIPS (net vgg) as the paper's Ref-LPIPS.
     pub ref_lpips: f32,
+    /// The same through AlexNet.
+    pub ref_lpips_alex: f32,
+    /// LPIPS's unweighted form on Oxford's VGG16 (refnpr's earlier figure).
+    pub ref_lpips_uncalibrated: f32,
     /// The path frames `ref_lpips` used, per reference.
     pub ref_lpips_frames: Vec<Vec<usize>>,
     pub gt: Option<PathBuf>,
@@ -229,7 +236,11 @@ pub struct StylizationEval {
     /// The same on the test views, and on the ground truth at those pixels.
     pub speckle_test: Option<f32>,
     pub gt_speckle: Option<f32>,
+    /// refnpr's protocol: PSNR over all the path frames' pixels, averaged over the restylizations.
     pub robustness_psnr: Option<f32>,
+    /// The authors' protocol: each frame at 400x400 in 8 bits, per-frame
+    /// PSNR, the best 100 frames averaged, averaged over the restylizations.
+    pub robustness_psnr_authors: Option<f32>,
     /// The path frames used as new references by the robustness test.
     pub robustness_frames: Vec<usize>,
     pub path_frames: usize,
@@ -304,7 +315,7 @@ pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedR
     drop(renderer);
     progress.info(format!("rendered the path in {:.1} s", started.elapsed().as_secs_f64()));
     let started = std::time::Instant::now();
-    let (ref_lpips, ref_lpips_frames) = ref_lpips(&ck, &dataset, &case, &frames)?;
+    let lpips = ref_lpips(&ck, &dataset, &case, &frames)?;
     progress.info(format!("ref_lpips in {:.1} s", started.elapsed().as_secs_f64()));
     let truth = match &job.gt {
         Some(gt) => Some(ground_truth_psnrs(&ck, &dataset, &case, gt)?),
@@ -317,8 +328,10 @@ pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedR
     let report = StylizationEval {
         run: job.run.clone(),
         reference: job.case.clone(),
-        ref_lpips,
-        ref_lpips_frames,
+        ref_lpips: lpips.vgg,
+        ref_lpips_alex: lpips.alex,
+        ref_lpips_uncalibrated: lpips.uncalibrated,
+        ref_lpips_frames: lpips.frames,
         gt: job.gt.clone(),
         gt_psnr: truth.as_ref().map(|t| t.all),
         gt_psnr_occluded: truth.as_ref().and_then(|t| t.occluded),
@@ -332,39 +345,59 @@ pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedR
         gt_speckle: truth.as_ref().map(|t| t.gt_speckle),
         gt_views: truth.map(|t| t.views).unwrap_or_default(),
         robustness_psnr: None,
+        robustness_psnr_authors: None,
         robustness_frames: Vec::new(),
         path_frames: path.len(),
     };
     Ok(EvaluatedRun { ck, dataset, case, frames, report })
 }
 
-/// Ref-LPIPS: the mean perceptual distance between each style reference and
-/// the `REF_LPIPS_VIEWS` path frames nearest its camera; also which frames.
-fn ref_lpips(
-    ck: &Checkpoint,
-    dataset: &Dataset,
-    case: &ReferenceCase,
-    frames: &[SurfaceRender],
-) -> Result<(f32, Vec<Vec<usize>>)> {
+/// Ref-LPIPS's three figures and the frames they used.
+struct RefLpips {
+    vgg: f32,
+    alex: f32,
+    uncalibrated: f32,
+    frames: Vec<Vec<usize>>,
+}
+
+/// Ref-LPIPS: the mean distance between each style reference and the
+/// `REF_LPIPS_VIEWS` path frames nearest its camera, through LPIPS (vgg and
+/// alex) and the uncalibrated distance; also which frames.
+fn ref_lpips(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, frames: &[SurfaceRender]) -> Result<RefLpips> {
     let device = ck.grid.device();
-    let vgg = Vgg16::load(&device);
     let path: Vec<Camera> = frames.iter().map(|f| f.camera).collect();
-    let mut distances = Vec::new();
+    let (w, h) = (path[0].intrinsics.width, path[0].intrinsics.height);
+    let mut styles = Vec::new();
     let mut used = Vec::new();
     for (spec, cam) in case.references.iter().zip(&case.cameras(dataset)?) {
-        let near = nearest_cameras(&path, cam, REF_LPIPS_VIEWS);
-        let (w, h) = (path[0].intrinsics.width, path[0].intrinsics.height);
         let (style, _) = case::read_style(&spec.style, w, h, ck.meta.background)?;
-        let style = Image::new(w as usize, h as usize, style);
-        // The style's features once, not once per frame (`perceptual_distance`'s arithmetic).
+        styles.push(Image::new(w as usize, h as usize, style));
+        used.push(nearest_cameras(&path, cam, REF_LPIPS_VIEWS));
+    }
+    let mean = |d: Vec<f32>| d.iter().sum::<f32>() / d.len().max(1) as f32;
+    let mut calibrated = [0.0; 2];
+    for (slot, net) in calibrated.iter_mut().zip([LpipsNet::Vgg, LpipsNet::Alex]) {
+        let lpips = Lpips::load(net, &device);
+        let mut distances = Vec::new();
+        for (style, near) in styles.iter().zip(&used) {
+            // The style's features once, not once per frame.
+            let style = lpips.features(style)?;
+            for &i in near {
+                distances.push(lpips.distance_of(&style, &lpips.features(&frames[i].image)?)?);
+            }
+        }
+        *slot = mean(distances);
+    }
+    let vgg = Vgg16::load(&device);
+    let mut distances = Vec::new();
+    for (style, near) in styles.iter().zip(&used) {
         let style_features = vgg.features(style.tensor(&device), &LPIPS_LAYERS)?;
-        for &i in &near {
+        for &i in near {
             let frame_features = vgg.features(frames[i].image.tensor(&device), &LPIPS_LAYERS)?;
             distances.push(normalised_feature_distance(&style_features, &frame_features, &LPIPS_LAYERS));
         }
-        used.push(near);
     }
-    Ok((distances.iter().sum::<f32>() / distances.len().max(1) as f32, used))
+    Ok(RefLpips { vgg: calibrated[0], alex: calibrated[1], uncalibrated: mean(distances), frames: used })
 }
 
 /// Views within this angle of a reference camera's viewing direction are

@@ -10,6 +10,7 @@ use crate::field::march::ColourCorners;
 use crate::field::optim::RmsStart;
 use crate::reference::r3::RegisterParams;
 use crate::util::config;
+use crate::vgg::VggWeights;
 
 /// How the SH learning rate moves over a stylization.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -421,6 +422,16 @@ impl ColourMapConfig {
     }
 }
 
+/// The feature network of the losses (TCM's and L_color's matches, L_feat,
+/// the content term, ARF's NNFM).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct VggConfig {
+    /// Which ImageNet weights VGG16 carries: Oxford's original release or
+    /// torchvision's (the authors'), each with its own input normalisation.
+    pub weights: VggWeights,
+}
+
 /// Everything `refnpr stylize` needs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -434,6 +445,8 @@ pub struct StylizeConfig {
     pub register: RegisterParams,
     /// The reference's colour mapping carried to every surface (`colour_map`).
     pub colour_map: ColourMapConfig,
+    /// The losses' feature network.
+    pub vgg: VggConfig,
     /// Colour at voxels with empty corners, for the stylized field (its
     /// checkpoint records it, so every render of it uses the same).
     pub colour_corners: ColourCorners,
@@ -473,6 +486,7 @@ impl Default for StylizeConfig {
             arf: ArfConfig::default(),
             register: RegisterParams::default(),
             colour_map: ColourMapConfig::default(),
+            vgg: VggConfig::default(),
             colour_corners: ColourCorners::Renormalised,
             min_sample_weight: 1e-5,
             sample_cache_mb: 2048,
@@ -586,5 +600,7 @@ mod tests {
             !authors.colour_map.init_field && !authors.colour_map.colour_targets,
             "the authors' method has no colour map"
         );
+        assert_eq!(authors.vgg.weights, VggWeights::Torchvision, "the authors' VGG16");
+        assert_eq!(paper.vgg.weights, VggWeights::Oxford);
     }
 }

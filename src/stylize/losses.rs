@@ -6,6 +6,7 @@ use burn::tensor::module::avg_pool2d;
 use burn::tensor::ops::AvgPoolOptions;
 
 use crate::stylize::config::ColourNorm;
+use crate::vgg::VggWeights;
 use crate::vgg::features::{nearest_by_dot, normalise_rows};
 
 /// Mean over rows of the cosine distance 1 - cos(a_i, b_i).
@@ -20,17 +21,26 @@ pub fn mse<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> Tensor<1> {
     (d.clone() * d).mean()
 }
 
-/// Our VGG16 takes Caffe-convention input (x*255 - mean), the released code
-/// torchvision's ((x - mean) / std, std about 0.226): the same image enters
-/// about 255 x 0.226 = 57.6 times larger here, and so do the ReLU features
-/// (nearly positively homogeneous). Feature MSEs are measured in
-/// torchvision's units, so λ' keeps the paper's meaning.
+/// Oxford's VGG16 takes Caffe-convention input (x*255 - mean), the released
+/// code's torchvision weights ((x - mean) / std, std about 0.226): the same
+/// image enters about 255 x 0.226 = 57.6 times larger with Oxford's, and so
+/// do the ReLU features (nearly positively homogeneous). Feature MSEs are
+/// measured in torchvision's units, so λ' keeps the paper's meaning.
 pub const FEATURE_UNIT: f32 = 57.6;
 
-/// The content term: mean squared difference of two feature matrices, in
-/// torchvision feature units.
-pub fn content_loss(render: Tensor<2>, content: Tensor<2>) -> Tensor<1> {
-    mse(render, content) / (FEATURE_UNIT * FEATURE_UNIT)
+/// The size of one torchvision feature unit in the features of `weights`.
+pub fn feature_unit(weights: VggWeights) -> f32 {
+    match weights {
+        VggWeights::Oxford => FEATURE_UNIT,
+        VggWeights::Torchvision => 1.0,
+    }
+}
+
+/// The content term: mean squared difference of two feature matrices of
+/// VGG16 with `weights`, in torchvision feature units.
+pub fn content_loss(render: Tensor<2>, content: Tensor<2>, weights: VggWeights) -> Tensor<1> {
+    let unit = feature_unit(weights);
+    mse(render, content) / (unit * unit)
 }
 
 /// `[1, 3, H, W]` -> `[1, 3, H/2, W/2]`, each pixel the mean of a 2x2

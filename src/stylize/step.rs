@@ -188,7 +188,7 @@ impl<'a> StyleStep<'a> {
             background: meta.background,
             field,
             samples,
-            vgg: Vgg16::load(&ad),
+            vgg: Vgg16::load_weights(&ad, job.config.vgg.weights),
             ad,
             device,
             kernel,
@@ -606,7 +606,7 @@ impl<'a> StyleStep<'a> {
                         accumulate(&mut parts.feature, &style);
                         total = total + style * weight;
                         if content_weight > 0.0 && b < guide.content.len() {
-                            let c = losses::content_loss(r, guide.content[b].tensor());
+                            let c = losses::content_loss(r, guide.content[b].tensor(), self.cfg.vgg.weights);
                             accumulate(&mut parts.content, &c);
                             total = total + c * (weight * content_weight);
                         }
@@ -636,7 +636,7 @@ impl<'a> StyleStep<'a> {
                 accumulate(&mut parts.feature, &nnfm);
                 total = total + nnfm * a.nnfm;
                 if let (true, Some(content)) = (a.content > 0.0, guide.content.first()) {
-                    let c = losses::content_loss(render, content.tensor());
+                    let c = losses::content_loss(render, content.tensor(), self.cfg.vgg.weights);
                     accumulate(&mut parts.content, &c);
                     total = total + c * a.content;
                 }

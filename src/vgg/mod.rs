@@ -1,9 +1,14 @@
 //! VGG16 feature extractor: a thin wrapper over the model burn-onnx generates
 //! from `models/vgg16_features.onnx` at build time (see build.rs, models/README.md).
 //!
-//! Input: a batch of RGB images `[N, 3, H, W]` with values in [0, 1]. The ImageNet
-//! normalisation (x*255 minus the Caffe mean, the convention of the original
-//! Oxford weights) happens inside the ONNX graph, so callers never normalise.
+//! Two sets of ImageNet weights ([`VggWeights`]): Oxford's original release
+//! (the ONNX file's, the default) and torchvision's (`vgg::weights`, the
+//! network the authors' losses and LPIPS use), loaded into the same graph.
+//!
+//! Input: a batch of RGB images `[N, 3, H, W]` with values in [0, 1]. Each
+//! set's input normalisation happens inside the model (Oxford: x*255 minus
+//! the Caffe mean; torchvision: minus the mean, over the std; LPIPS: its
+//! scaling layer), so callers never normalise.
 //!
 //! Image sizes: any H, W >= 32. The four 2x2 max-pools floor odd sizes (as
 //! PyTorch's `ceil_mode=False`), so stage s (relu{s}_x) has size
@@ -27,11 +32,13 @@ pub use crate::util::tensor::image_tensor;
 use crate::vgg::conv_op::PreparedSlot;
 use crate::vgg::model::Model;
 
+pub mod alexnet;
 pub(crate) mod conv3x3;
 pub(crate) mod conv_op;
 pub mod features;
 pub(crate) mod model;
 pub(crate) mod staged;
+pub mod weights;
 
 /// SHA-256 over the 13 convolutions' weights and biases (float32 LE, in
 /// network order, weight before bias): the value `models/make_vgg16_onnx.py`
@@ -201,6 +208,28 @@ pub enum VggForward {
     Winograd,
 }
 
+/// Which ImageNet weights VGG16 carries.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum VggWeights {
+    /// Oxford's original Caffe release (Simonyan & Zisserman; the weights
+    /// of Gatys et al.'s style transfer): input x*255 minus the Caffe mean.
+    #[default]
+    Oxford,
+    /// torchvision's `vgg16-397923af` (PyTorch's retraining; the network of
+    /// the authors' TCM and NNFM losses and of LPIPS): input minus
+    /// torchvision's mean, over its std.
+    Torchvision,
+}
+
+/// torchvision's input normalisation (ImageNet mean and std, RGB).
+const TORCH_MEAN: [f32; 3] = [0.485, 0.456, 0.406];
+const TORCH_STD: [f32; 3] = [0.229, 0.224, 0.225];
+
+/// LPIPS's scaling layer, on inputs mapped from [0, 1] to [-1, 1].
+pub const LPIPS_SHIFT: [f32; 3] = [-0.030, -0.088, -0.188];
+pub const LPIPS_SCALE: [f32; 3] = [0.458, 0.448, 0.450];
+
 /// Convolutions whose kernel weights are prepared once and kept: those up
 /// to relu4_3, the deepest layer a loss back-propagates through (TCM).
 /// Stage 5 (relu5_x: colour matching's descriptors, a forward per view
@@ -225,6 +254,43 @@ impl Vgg16 {
     pub fn load(device: &Device) -> Self {
         let model = Model::from_embedded(device).no_grad();
         crate::util::transfer::record_upload(model.num_params() * 4);
+        Self { model, forward: VggForward::default(), prepared: Arc::default() }
+    }
+
+    /// The ImageNet weights `weights` names, on `device`.
+    pub fn load_weights(device: &Device, weights: VggWeights) -> Self {
+        match weights {
+            VggWeights::Oxford => Self::load(device),
+            VggWeights::Torchvision => Self::torchvision(device, TORCH_MEAN, TORCH_STD),
+        }
+    }
+
+    /// torchvision's weights behind LPIPS's scaling layer: an image `x` in
+    /// [0, 1] enters as `(2x - 1 - shift) / scale`, i.e. `(x - (1 + shift) / 2)
+    /// / (scale / 2)`.
+    pub fn lpips(device: &Device) -> Self {
+        Self::torchvision(device, LPIPS_SHIFT.map(|s| (1.0 + s) / 2.0), LPIPS_SCALE.map(|s| s / 2.0))
+    }
+
+    /// torchvision's weights for inputs `(x - mean) / std`. The division is
+    /// folded into conv1_1's weights (per input channel), which is exact,
+    /// zero padding included: a padded zero of `(x - mean) / std` is a
+    /// padded zero of `x - mean`.
+    fn torchvision(device: &Device, mean: [f32; 3], std: [f32; 3]) -> Self {
+        let mut convs: Vec<(Tensor<4>, Tensor<1>)> = (1..=13)
+            .map(|i| {
+                (
+                    weights::tensor(&format!("vgg.conv{i}.weight"), device),
+                    weights::tensor(&format!("vgg.conv{i}.bias"), device),
+                )
+            })
+            .collect();
+        let inv_std = crate::util::tensor::floats(std.map(|s| 1.0 / s).to_vec(), [1, 3, 1, 1], device);
+        convs[0].0 = convs[0].0.clone() * inv_std;
+        let scale = crate::util::tensor::floats(vec![1.0], [1], device);
+        let mean = crate::util::tensor::floats(mean.to_vec(), [1, 3, 1, 1], device);
+        // (The weights' upload is counted by `floats`.)
+        let model = Model::new(device).with_weights(convs, scale, mean).no_grad();
         Self { model, forward: VggForward::default(), prepared: Arc::default() }
     }
 

@@ -35,3 +35,40 @@ impl Model {
         [&self.maxpool2d1, &self.maxpool2d2, &self.maxpool2d3, &self.maxpool2d4]
     }
 }
+
+impl Model {
+    /// The same graph carrying other weights: the 13 convolutions' (weight
+    /// `[out, in, 3, 3]`, bias `[out]`) in network order, the input scale
+    /// (`[1]`) and the mean subtracted after it (`[1, 3, 1, 1]`).
+    pub(crate) fn with_weights(
+        mut self,
+        convs: Vec<(Tensor<4>, Tensor<1>)>,
+        scale: Tensor<1>,
+        mean: Tensor<4>,
+    ) -> Self {
+        assert_eq!(convs.len(), 13, "VGG16 has 13 convolutions");
+        let slots = [
+            &mut self.conv2d1,
+            &mut self.conv2d2,
+            &mut self.conv2d3,
+            &mut self.conv2d4,
+            &mut self.conv2d5,
+            &mut self.conv2d6,
+            &mut self.conv2d7,
+            &mut self.conv2d8,
+            &mut self.conv2d9,
+            &mut self.conv2d10,
+            &mut self.conv2d11,
+            &mut self.conv2d12,
+            &mut self.conv2d13,
+        ];
+        for (conv, (weight, bias)) in slots.into_iter().zip(convs) {
+            assert_eq!(conv.weight.dims(), weight.dims(), "a VGG16 convolution's weight shape");
+            conv.weight = burn::module::Param::from_tensor(weight);
+            conv.bias = Some(burn::module::Param::from_tensor(bias));
+        }
+        self.constant1 = burn::module::Param::from_tensor(scale);
+        self.constant2 = burn::module::Param::from_tensor(mean);
+        self
+    }
+}
