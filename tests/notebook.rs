@@ -211,9 +211,12 @@ fn the_whole_pipeline_on_this_backend_lands_where_a_cpu_backends_does() {
     // Ref-LPIPS follows the run's path more than the two PSNRs above: three
     // wgpu variants differing only in the order of float sums (the TV
     // gradient in the graph or a kernel; picks gathered or rendered over the
-    // whole lists) measured 2.56, 2.65 and 2.65 against flex's 2.42.
-    let lpips_gap = (eval.ref_lpips - cpu_eval.ref_lpips).abs() / cpu_eval.ref_lpips;
-    assert!(lpips_gap <= 0.12, "Ref-LPIPS {:.4} vs {:.4}", eval.ref_lpips, cpu_eval.ref_lpips);
+    // whole lists) measured 2.56, 2.65 and 2.65 against flex's 2.42 in the
+    // uncalibrated form, which the bound below was set on (the calibrated
+    // metric itself is checked on every backend by tests/evaluation.rs).
+    let (lpips, cpu_lpips) = (eval.ref_lpips_uncalibrated, cpu_eval.ref_lpips_uncalibrated);
+    let lpips_gap = (lpips - cpu_lpips).abs() / cpu_lpips;
+    assert!(lpips_gap <= 0.12, "uncalibrated Ref-LPIPS {lpips:.4} vs {cpu_lpips:.4}");
     // Pixel by pixel the two runs part (the graph sums in another order, and
     // RMSprop divides near-cancelled gradients by their own size: on wgpu
     // this render measured 21.8 dB from flex's, 19.5 dB from the photo), so

@@ -1005,7 +1005,12 @@ fn run_demo(
         100.0 * e.occluded_fraction.unwrap_or(0.0)
     );
     let st: Vec<String> = e.stability.iter().map(|s| format!("{} frame(s) apart {:.4}", s.gap, s.rmse)).collect();
-    println!("  ref_lpips {:.4}; stability (warp RMSE) {}", e.ref_lpips, st.join(", "));
+    println!(
+        "  Ref-LPIPS {:.4} (LPIPS vgg, the paper's metric; alex {:.4}); stability (warp RMSE) {}",
+        e.ref_lpips,
+        e.ref_lpips_alex,
+        st.join(", ")
+    );
     println!(
         "  speckle {:.2}% of the surface pixels (test views {}, ground truth {})",
         100.0 * e.speckle,
