@@ -741,7 +741,6 @@ fn run_bench_stylize_command(command: Command, progress: &Console) -> Result<()>
     run_bench_stylize(job, refit_epochs, image_epochs, json.as_deref(), progress)
 }
 
-/// `refnpr eval`: the stylization metrics (with `--reference`), or a photoreal run's test PSNR.
 /// `refnpr lpips A B`: the distance on stdout alone (for scripts), a resize on stderr.
 fn run_lpips(
     a: &Path,
@@ -761,6 +760,7 @@ fn run_lpips(
     Ok(())
 }
 
+/// `refnpr eval`: the stylization metrics (with `--reference`), or a photoreal run's test PSNR.
 fn run_eval(command: Command, progress: &Console) -> Result<()> {
     let Command::Eval {
         run,
