@@ -1,5 +1,5 @@
 //! What the stylization's colour pass costs on one backend, the fused
-//! kernel (`field::frozen_op`, what `frozen::render_colour` runs on a GPU)
+//! kernel (`kernels::frozen_op`, what `frozen::render_colour` runs on a GPU)
 //! against the Burn graph (`frozen::render_colour_graph`), on one training
 //! view of a photoreal run: `REFNPR_BACKEND=wgpu cargo run --example
 //! colour_costs -- RUN/checkpoint.bin DATA VIEW REPEATS`. It marches the

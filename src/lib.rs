@@ -3,8 +3,9 @@
 //!
 //! | module | stage |
 //! | --- | --- |
-//! | `util` | backend choice, tensor helpers, the GPU row kernels (CubeCL), the one `Image` type and its files, the image metrics (PSNR, SSIM, speckle), file writes, progress events, per-step RNG, memory readings, phase costs |
+//! | `util` | backend choice, tensor helpers, the one `Image` type and its files, the image metrics (PSNR, SSIM, speckle), file writes (safetensors: checkpoints' layout, arrays with JSON), progress events, per-step RNG, memory readings, phase costs |
 //! | `scene` | cameras, rays, NDC, camera paths, the SH basis; dataset loaders (Blender, LLFF, NSVF, COLMAP models, `transforms.json`, the procedural scene) |
+//! | `kernels` | our fused kernels as Burn operations with their backward and graph oracles: the GPU row gathers (CubeCL), the GPU compositing, colour pass and optimiser kernels, flex's parallel row updates, the CPU 3x3 convolution (Winograd) |
 //! | `vgg` | the feature networks: the ONNX-imported VGG16 with Oxford's or torchvision's weights, AlexNet, the embedded LPIPS weights, block descriptors and nearest neighbours |
 //! | `field` | the radiance grid, ray marching (plain Rust), compositing (Burn graph), the view renderer (kernel chosen once), camera-path renders, the frozen-density colour renderer, what the optimisers share (RMSprop, TV, row subsets), checkpoints |
 //! | `photo` | stage 1: fitting the photorealistic field (config, `Trainer::step_once`, the training run, its test-view evaluation) |
@@ -42,6 +43,7 @@
 pub mod eval;
 pub mod export;
 pub mod field;
+pub mod kernels;
 pub mod notebook;
 pub mod photo;
 pub mod reference;

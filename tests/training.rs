@@ -346,7 +346,7 @@ fn a_training_step_moves_its_batch_not_the_grid() {
     let mut bound = st.samples * (26 + nb) * 4 + rays * (st.max_samples_per_ray * 4 + 12) + st.rows * 16 + 12;
     let mut most_uploads = 16;
     if !refnpr::util::tensor::is_host_memory(&common::device()) {
-        // On a GPU the two gathers' transposes (`util::gather_op`): per
+        // On a GPU the two gathers' transposes (`kernels::gather_op`): per
         // sample 8 corner entries, one padded entry and one offset; per row
         // one offset, and one more each.
         bound += (st.samples * 10 + st.rows + 2) * 4;

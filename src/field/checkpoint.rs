@@ -7,12 +7,13 @@
 use crate::field::environment::Environment;
 use crate::field::grid::{GridGeometry, RadianceGrid};
 use crate::field::view::{RenderSettings, ViewRender, ViewRenderer};
+use crate::kernels::rows_op;
 use crate::scene::camera::{Camera, NdcParams};
 use crate::scene::data::{DatasetKind, LoadOptions};
 use crate::util::input::InputError;
 use crate::util::safetensors::{self, DType};
 use crate::util::tensor::floats;
-use crate::util::{bin_fields, files, rows_op};
+use crate::util::{bin_fields, files};
 use anyhow::{Context, Result, bail};
 
 use burn::tensor::{Device, Tensor};

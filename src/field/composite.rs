@@ -8,8 +8,8 @@
 use burn::tensor::{Device, Int, Tensor, activation::relu};
 
 use crate::field::march::SampleBatch;
+use crate::kernels::gather_op::{RowIndex, gather_rows};
 use crate::util::backend::max_buffer_bytes;
-use crate::util::gather_op::{RowIndex, gather_rows};
 use crate::util::tensor::{floats, indices, is_host_memory};
 
 /// The most samples one [`composite`] call may take on `device` with
@@ -43,7 +43,7 @@ pub struct BatchTensors {
     pub num_samples: usize,
     pub layout: RayLayout,
     /// Each sample's 8 corner rows, `[s * 8]` (with their transpose when
-    /// built for gradients on a GPU: `util::gather_op`).
+    /// built for gradients on a GPU: `kernels::gather_op`).
     pub corners: RowIndex,
     pub corner_weights: Tensor<2>,
     pub colour_weights: Tensor<2>,
@@ -72,7 +72,7 @@ impl BatchTensors {
 
     /// As [`new`](Self::new), for a graph that is differentiated: on a GPU
     /// the gathers' index transposes are uploaded too, which the backward
-    /// sums the rows' gradients through (`util::gather_op`; the fused
+    /// sums the rows' gradients through (`kernels::gather_op`; the fused
     /// kernel's upload carries the corners' transpose either way).
     pub fn for_gradients(b: &SampleBatch, remap: Option<&dyn Fn(i32) -> i32>, device: &Device) -> Self {
         Self::upload(b, remap, true, renderer_for(device), device)
@@ -229,7 +229,7 @@ fn composite_fused(
     {
         let idx = &bt.corners.idx;
         let transpose = bt.corners.transpose().expect("a fused upload carries the corners' transpose");
-        let inputs = crate::field::composite_op::FusedInputs {
+        let inputs = crate::kernels::composite_op::FusedInputs {
             corners: idx,
             transpose,
             corner_weights: &bt.corner_weights,
@@ -240,7 +240,7 @@ fn composite_fused(
             ray_offsets,
         };
         let r = bt.num_rays;
-        let out = crate::field::composite_op::composite_fused(density_rows, sh_rows, bg, &inputs);
+        let out = crate::kernels::composite_op::composite_fused(density_rows, sh_rows, bg, &inputs);
         Rendered {
             rgb: out.clone().narrow(1, 0, 3),
             depth: out.clone().narrow(1, 3, 1).reshape([r]),

@@ -11,14 +11,14 @@
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, activation::relu};
 
 use crate::field::composite::{interpolate_corners, max_samples_per_call};
-#[cfg(feature = "wgpu")]
-use crate::field::frozen_op;
 use crate::field::grid::{CellLattice, RadianceGrid, weights_of_fractions};
 use crate::field::march::{ColourCorners, MarchParams, Marcher, colour_weights};
+#[cfg(feature = "wgpu")]
+use crate::kernels::frozen_op;
+use crate::kernels::gather_op::{RowIndex, gather_rows, runs_of, sum_runs};
 use crate::scene::camera::Ray;
 use crate::scene::sh;
 use crate::util::budget_ranges;
-use crate::util::gather_op::{RowIndex, gather_rows, runs_of, sum_runs};
 use crate::util::tensor::{assign_rows, cumsum_rows, floats, indices, is_host_memory, select_rows, to_vec};
 use rayon::prelude::*;
 

@@ -1,24 +1,21 @@
 //! The radiance field: the sparse voxel grid (`grid`), ray marching in plain
 //! Rust (`march`), the differentiable compositing graph (`composite`;
-//! `composite_op`, its GPU kernel), the colour-only renderer over frozen
-//! density (`frozen`; `frozen_op`, its GPU kernel; `host_colour`, its fused
-//! plain-Rust twin for the CPU backends), what the optimisers share (`optim`; `optim_op`, RMSprop's
+//! its GPU kernel is `kernels::composite_op`), the colour-only renderer over frozen
+//! density (`frozen`; `kernels::frozen_op` on a GPU; `host_colour`, its fused
+//! plain-Rust twin for the CPU backends), what the optimisers share (`optim`; `kernels::optim_op`, RMSprop's
 //! GPU kernel), the far background behind the box (`environment`) and
 //! single-file checkpoints (`checkpoint`).
 
 pub mod checkpoint;
 pub mod composite;
-pub mod composite_op;
 pub mod environment;
 pub mod frozen;
-pub mod frozen_op;
 pub mod grid;
 pub(crate) mod host_colour;
 pub(crate) mod host_fit;
 pub(crate) mod host_render;
 pub mod march;
 pub mod optim;
-pub mod optim_op;
 pub mod render_path;
 pub mod view;
 

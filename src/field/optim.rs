@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 use std::sync::atomic::{AtomicI32, AtomicU64, Ordering::Relaxed};
 
 use crate::field::grid::CellLattice;
-use crate::util::rows_op;
+use crate::kernels::rows_op;
 use crate::util::tensor::{floats, indices, is_host_memory, to_vec};
 
 /// Exponential decay from `a` to `b` over `t` in [0, 1].
@@ -72,7 +72,7 @@ impl Rmsprop {
     /// A lazy step on the given rows only ("sparse" updates as Plenoxels:
     /// cost follows the rows, not the grid); `rows_t` holds `rows` as a
     /// tensor and `grad` those rows' gradients in the same order (distinct
-    /// rows). On a GPU one kernel per tensor (`field::optim_op`).
+    /// rows). On a GPU one kernel per tensor (`kernels::optim_op`).
     pub fn step_rows(
         &self,
         param: &mut Tensor<2>,
@@ -84,7 +84,7 @@ impl Rmsprop {
     ) {
         #[cfg(feature = "wgpu")]
         if !is_host_memory(&param.device()) {
-            use crate::field::optim_op::OptimBackend;
+            use crate::kernels::optim_op::OptimBackend;
             let (p, a) = <burn::backend::Dispatch as OptimBackend>::rmsprop_rows(
                 take(param).into_dispatch(),
                 take(avg).into_dispatch(),
@@ -119,7 +119,7 @@ impl Rmsprop {
 
     /// [`step_rows`](Self::step_rows) with the gradient on the host (`grad`,
     /// `[rows.len(), cols]`), in one pass over each row of `param` and `avg`
-    /// (`util::rows_op::update_row_pairs`: in place on flex) and the same
+    /// (`kernels::rows_op::update_row_pairs`: in place on flex) and the same
     /// numbers: the average gets `v_new - v` added, the row its step.
     pub fn host_step_rows(
         &self,
@@ -145,7 +145,7 @@ impl Rmsprop {
 /// Adds `values` to the rows `rows` of `slot` (a grid-sized tensor;
 /// `rows_t` holds the same indices as a tensor), in place: the tensor is
 /// moved out of its slot first, so the backend sees it uniquely owned
-/// instead of copying the grid. In parallel on flex (`util::rows_op`).
+/// instead of copying the grid. In parallel on flex (`kernels::rows_op`).
 pub fn add_rows(slot: &mut Tensor<2>, rows: &[i32], rows_t: &Tensor<1, Int>, values: Tensor<2>) {
     let t = take(slot);
     *slot = rows_op::add_to_rows(t, rows, rows_t, values);
@@ -291,14 +291,14 @@ impl TvLinks {
 /// `grad` plus the gradient of `scale` x Plenoxels' per-channel TV of
 /// `values` (`[rows, cols]`) over the centres of `links`:
 /// `optim::add_tv_gradient_per_channel`'s numbers, on the GPU by one
-/// thread per value (`field::optim_op`), on the CPU backends by that function.
+/// thread per value (`kernels::optim_op`), on the CPU backends by that function.
 pub fn add_tv_gradient(grad: Tensor<2>, values: &Tensor<2>, links: &TvLinks, scale: f32) -> Tensor<2> {
     if links.num_core == 0 {
         return grad;
     }
     #[cfg(feature = "wgpu")]
     if !is_host_memory(&grad.device()) {
-        use crate::field::optim_op::OptimBackend;
+        use crate::kernels::optim_op::OptimBackend;
         let out = <burn::backend::Dispatch as OptimBackend>::add_tv_gradient(
             grad.into_dispatch(),
             values.clone().into_dispatch(),
@@ -609,7 +609,7 @@ mod tests {
     }
 }
 
-/// `Rmsprop::step_rows` (`field::optim_op`'s kernel on a GPU, Burn's operations on the CPU
+/// `Rmsprop::step_rows` (`kernels::optim_op`'s kernel on a GPU, Burn's operations on the CPU
 /// backends) against `Rmsprop::host_step_rows` (the arithmetic in plain
 /// Rust), on every backend the test command runs (`cargo test --lib
 /// graph_oracle`).
@@ -622,7 +622,7 @@ mod graph_oracle {
     use crate::test_support::device;
     use crate::util::tensor::{floats, indices, to_vec};
 
-    /// The TV gradient (`field::optim_op`'s kernel on a GPU) against the host
+    /// The TV gradient (`kernels::optim_op`'s kernel on a GPU) against the host
     /// loop `add_tv_gradient_per_channel`, on a 6³ lattice whose first 100
     /// rows are the centres (those on the far faces are their own
     /// neighbours there): 1e-5 of the largest value (the kernel adds each

@@ -30,6 +30,7 @@ use crate::field::optim::{
     RmsStart, Rmsprop, RowSubset, TvLinks, TvNorm, add_tv_gradient, add_tv_gradient_per_channel, log_lerp,
     total_variation,
 };
+use crate::kernels::rows_op::{PREFETCH_AHEAD, read_rows, read_rows_into};
 use crate::photo::config::{FarBackground, GridConfig, TrainConfig};
 use crate::scene::camera::Ray;
 use crate::scene::data::{Dataset, DatasetKind};
@@ -37,7 +38,6 @@ use crate::util::backend::max_buffer_bytes;
 use crate::util::device_stats::PeakProbe;
 use crate::util::profile::StepProfile;
 use crate::util::rng::{Stream, step_rng};
-use crate::util::rows_op::{PREFETCH_AHEAD, read_rows, read_rows_into};
 use crate::util::tensor::{floats, indices, is_host_memory, scalar, select_rows, to_vec};
 use crate::util::transfer::human_bytes;
 
@@ -557,7 +557,7 @@ impl Trainer {
     }
 
     /// `gd` and `gs` plus the gradients of the TV terms (`tv_loss`'s), by
-    /// the TV kernel (`field::optim_op`).
+    /// the TV kernel (`kernels::optim_op`).
     fn tv_gradients(
         &self,
         local: &TvNeighbours,

@@ -17,10 +17,15 @@ use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
 use crate::util::files;
 use crate::util::image::{self, Image};
+use crate::util::input::InputError;
 use crate::util::progress::{Progress, WarningLog};
+use crate::util::tensor_file::{self, ArrayRef, Arrays};
 
 pub const REGISTRATION_FILE: &str = "registration.bin";
-const MAGIC: &[u8; 8] = b"REFNPRR3";
+/// The file's `format` (a safetensors file: `util::tensor_file`).
+const FORMAT: &str = "refnpr-registration";
+/// The tag of the files older versions wrote (bincode), refused with advice.
+const OLD_MAGIC: &[u8; 8] = b"REFNPRR3";
 
 /// The surface a camera sees in the photoreal field (equation-4 depth).
 pub fn field_surface(ck: &Checkpoint, camera: &Camera) -> Surface {
@@ -113,9 +118,58 @@ pub struct NamedRegistration {
     pub registration: ViewRegistration,
 }
 
+/// What `registration.bin` holds besides its arrays: per reference its
+/// camera (arrays `reference{i}.colours` `[pixels, 3]`, `reference{i}.hits`
+/// 0/1), per training view its name, size and surface pixels (arrays
+/// `view{i}.pixels`, `view{i}.colours` `[n, 3]`, `view{i}.reference`).
+#[derive(Serialize, Deserialize)]
+struct FileMeta {
+    photo: PhotoRun,
+    params: RegisterParams,
+    references: Vec<Camera>,
+    views: Vec<ViewMeta>,
+}
+
+#[derive(Serialize, Deserialize)]
+struct ViewMeta {
+    name: String,
+    width: u32,
+    height: u32,
+    hits: u32,
+}
+
 impl RegistrationFile {
     pub fn save(&self, path: &Path) -> Result<()> {
-        files::save(path, MAGIC, self)
+        let meta = FileMeta {
+            photo: self.photo.clone(),
+            params: self.params,
+            references: self.references.iter().map(|r| r.camera).collect(),
+            views: self
+                .views
+                .iter()
+                .map(|v| {
+                    let r = &v.registration;
+                    ViewMeta { name: v.name.clone(), width: r.width, height: r.height, hits: r.hits }
+                })
+                .collect(),
+        };
+        let hits: Vec<Vec<u32>> = self.references.iter().map(|r| r.hits.iter().map(|&h| h as u32).collect()).collect();
+        let sources: Vec<Vec<u32>> =
+            self.views.iter().map(|v| v.registration.reference.iter().map(|&r| r as u32).collect()).collect();
+        let ref_names: Vec<_> = reference_names(self.references.len()).collect();
+        let view_names: Vec<_> = view_names(self.views.len()).collect();
+        let mut arrays = Vec::new();
+        for ((r, hits), [colours, hit]) in self.references.iter().zip(&hits).zip(&ref_names) {
+            arrays.push(ArrayRef::F32(colours, vec![r.colours.len(), 3], r.colours.as_flattened()));
+            arrays.push(ArrayRef::U32(hit, vec![hits.len()], hits));
+        }
+        for ((v, sources), [pixels, colours, source]) in self.views.iter().zip(&sources).zip(&view_names) {
+            let r = &v.registration;
+            arrays.push(ArrayRef::U32(pixels, vec![r.pixels.len()], &r.pixels));
+            arrays.push(ArrayRef::F32(colours, vec![r.colours.len(), 3], r.colours.as_flattened()));
+            arrays.push(ArrayRef::U32(source, vec![sources.len()], sources));
+        }
+        tensor_file::save(path, FORMAT, &meta, &arrays)
     }
 
     /// The file itself for a `refnpr register` output folder or a file path.
@@ -125,11 +179,49 @@ impl RegistrationFile {
 
     /// Reads `registration.bin` (or the file in a `refnpr register` output folder).
     pub fn load(path: &Path) -> Result<Self> {
-        files::load(
-            &Self::resolve(path),
-            MAGIC,
-            "a refnpr registration file (made by this version's `refnpr register`)",
-        )
+        let file = Self::resolve(path);
+        let what = "a refnpr registration file (made by `refnpr register`)";
+        let older = "run `refnpr register` again (a few seconds), or leave out --registration";
+        let (meta, mut arrays): (FileMeta, _) = tensor_file::load(&file, FORMAT, what, (OLD_MAGIC, older))?;
+        let corrupt = |message: String| -> anyhow::Error {
+            InputError::Malformed { path: file.clone(), message: format!("{} is corrupt: {message}", file.display()) }
+                .into()
+        };
+        let mut references = Vec::new();
+        for (camera, [colours, hits]) in meta.references.into_iter().zip(reference_names(usize::MAX)) {
+            let colours = triples(&mut arrays, &colours).map_err(corrupt)?;
+            let hits: Vec<bool> = arrays.u32(&hits)?.into_iter().map(|h| h != 0).collect();
+            if hits.len() != colours.len() {
+                return Err(corrupt(format!("a reference of {} colours and {} hit marks", colours.len(), hits.len())));
+            }
+            references.push(ReferencePixels { camera, colours, hits });
+        }
+        let mut views = Vec::new();
+        for (view, [pixels, colours, sources]) in meta.views.into_iter().zip(view_names(usize::MAX)) {
+            let pixels = arrays.u32(&pixels)?;
+            let colours = triples(&mut arrays, &colours).map_err(corrupt)?;
+            let reference: Vec<u16> =
+                arrays.u32(&sources)?.into_iter().map(|r| r.min(u16::MAX as u32) as u16).collect();
+            if colours.len() != pixels.len() || reference.len() != pixels.len() {
+                return Err(corrupt(format!(
+                    "view {} has {} pixels, {} colours, {} sources",
+                    view.name,
+                    pixels.len(),
+                    colours.len(),
+                    reference.len()
+                )));
+            }
+            let registration = ViewRegistration {
+                width: view.width,
+                height: view.height,
+                pixels,
+                colours,
+                reference,
+                hits: view.hits,
+            };
+            views.push(NamedRegistration { name: view.name, registration });
+        }
+        Ok(Self { photo: meta.photo, params: meta.params, references, views })
     }
 
     /// Registered pixels over pixels with a surface, all training views together.
@@ -190,6 +282,26 @@ impl RegistrationFile {
         }
         Ok(())
     }
+}
+
+/// The array names of each reference: its colours and its hit marks.
+fn reference_names(n: usize) -> impl Iterator<Item = [String; 2]> {
+    (0..n).map(|i| [format!("reference{i}.colours"), format!("reference{i}.hits")])
+}
+
+/// The array names of each training view: its pixels, their colours and sources.
+fn view_names(n: usize) -> impl Iterator<Item = [String; 3]> {
+    (0..n).map(|i| [format!("view{i}.pixels"), format!("view{i}.colours"), format!("view{i}.reference")])
+}
+
+/// An F32 array of shape `[n, 3]` as `n` colours.
+fn triples(arrays: &mut Arrays, name: &str) -> std::result::Result<Vec<[f32; 3]>, String> {
+    let shape = arrays.shape(name).map_err(|e| format!("{e:#}"))?.to_vec();
+    if shape.len() != 2 || shape[1] != 3 {
+        return Err(format!("array {name} has shape {shape:?}, not [n, 3]"));
+    }
+    let values = arrays.f32(name).map_err(|e| format!("{e:#}"))?;
+    Ok(values.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
 }
 
 /// What `register.json` reports.

@@ -13,13 +13,16 @@ use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
 use crate::stylize::{CurvePoint, Method, StylizeJob};
-use crate::util::files;
+use crate::util::tensor_file::{self, ArrayRef};
 
 pub const RESUME_FILE: &str = "resume.bin";
-const MAGIC: &[u8; 8] = b"REFNPRS1";
+/// The file's `format` (a safetensors file: `util::tensor_file`).
+const FORMAT: &str = "refnpr-stylize-resume";
+/// The tag of the files older versions wrote (bincode), refused with advice.
+const OLD_MAGIC: &[u8; 8] = b"REFNPRS1";
 
 /// A stylization's state between two steps.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone)]
 pub struct ResumeState {
     /// What the run was: a resumed run must be the same job.
     pub job: JobKey,
@@ -35,6 +38,16 @@ pub struct ResumeState {
     /// Optimiser steps over all phases (the shared learning-rate schedule).
     pub optimiser_steps: usize,
     pub curve: Vec<CurvePoint>,
+}
+
+/// What the file holds besides the four fields' arrays (`refit_sh`,
+/// `smooth_sh` when there is one, `sh`, `rms`).
+#[derive(Serialize, Deserialize)]
+struct Meta {
+    job: JobKey,
+    image_steps: usize,
+    optimiser_steps: usize,
+    curve: Vec<CurvePoint>,
 }
 
 /// The parts of a job that decide its result.
@@ -64,9 +77,24 @@ pub fn path(out: &Path) -> PathBuf {
     out.join(RESUME_FILE)
 }
 
+/// A field-sized array as a one-dimensional tensor.
+fn flat<'a>(name: &'a str, values: &'a [f32]) -> ArrayRef<'a> {
+    ArrayRef::F32(name, vec![values.len()], values)
+}
+
 impl ResumeState {
     pub fn save(&self, out: &Path) -> Result<()> {
-        files::save(&path(out), MAGIC, self)
+        let meta = Meta {
+            job: self.job.clone(),
+            image_steps: self.image_steps,
+            optimiser_steps: self.optimiser_steps,
+            curve: self.curve.clone(),
+        };
+        let mut arrays = vec![flat("refit_sh", &self.refit_sh), flat("sh", &self.sh), flat("rms", &self.rms)];
+        if let Some(smooth) = &self.smooth_sh {
+            arrays.push(flat("smooth_sh", smooth));
+        }
+        tensor_file::save(&path(out), FORMAT, &meta, &arrays)
     }
 
     /// The state a killed run of `job` left in its output folder, if any;
@@ -93,7 +121,20 @@ impl ResumeState {
 
     /// Reads a resume file, whatever job it belongs to.
     pub fn read(file: &Path) -> Result<Self> {
-        files::load(file, MAGIC, "a refnpr stylization resume file")
+        let older = "run without --resume to start the stylization again";
+        let (meta, mut arrays): (Meta, _) =
+            tensor_file::load(file, FORMAT, "a refnpr stylization resume file", (OLD_MAGIC, older))?;
+        let smooth_sh = if arrays.has("smooth_sh") { Some(arrays.f32("smooth_sh")?) } else { None };
+        Ok(Self {
+            job: meta.job,
+            refit_sh: arrays.f32("refit_sh")?,
+            smooth_sh,
+            sh: arrays.f32("sh")?,
+            rms: arrays.f32("rms")?,
+            image_steps: meta.image_steps,
+            optimiser_steps: meta.optimiser_steps,
+            curve: meta.curve,
+        })
     }
 
     /// Removes the state of a finished run.

@@ -2,10 +2,10 @@
 //! through [`write_atomic`]: a temporary file beside the target, synced, then
 //! renamed over it, so a reader (or a run killed half-way, or a full disk)
 //! never leaves a half-written file, and a failed write keeps the previous
-//! good one. Our binary files (checkpoints, registrations) are an 8-byte
-//! magic tag then a bincode payload, read as a stream with the file's size as
-//! the decoding limit, so a corrupt length field is an error rather than a
-//! huge allocation.
+//! good one. Our binary files are safetensors files (checkpoints:
+//! `field::checkpoint`; registrations and resume states:
+//! `util::tensor_file`); checkpoints of older versions, an 8-byte magic tag
+//! then bincode's layout, are still read ([`open_tagged`], `util::bin_fields`).
 
 use std::fs::File;
 use std::io::{BufReader, BufWriter, Read, Write};
@@ -14,14 +14,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 
 use crate::util::input::InputError;
-use bincode::Options;
 use serde::Serialize;
 use serde::de::DeserializeOwned;
-
-/// The encoding of `bincode::serialize`, plus a size limit.
-fn options(limit: u64) -> impl Options {
-    bincode::DefaultOptions::new().with_fixint_encoding().allow_trailing_bytes().with_limit(limit)
-}
 
 /// Writes `path` with `write`, atomically: into a temporary file in the same
 /// folder (created if missing), flushed and synced, then renamed over `path`.
@@ -81,28 +75,8 @@ fn hint(e: &std::io::Error) -> &'static str {
     }
 }
 
-/// Writes `magic` + `value` to `path` atomically.
-pub fn save<T: Serialize>(path: &Path, magic: &[u8; 8], value: &T) -> Result<()> {
-    write_atomic(path, |w| {
-        w.write_all(magic).map_err(|e| io_error(e, path))?;
-        bincode::serialize_into(&mut *w, value).map_err(|e| match *e {
-            bincode::ErrorKind::Io(io) => io_error(io, path),
-            other => anyhow::anyhow!("serialising {}: {other}", path.display()),
-        })
-    })
-}
-
-/// Reads a file written by `save`; `what` names the kind in errors
-/// ("a refnpr checkpoint").
-pub fn load<T: DeserializeOwned>(path: &Path, magic: &[u8; 8], what: &str) -> Result<T> {
-    let (mut reader, limit) = open_tagged(path, magic, what)?;
-    options(limit)
-        .deserialize_from(&mut reader)
-        .with_context(|| InputError::Malformed { path: path.into(), message: format!("{} is corrupt", path.display()) })
-}
-
-/// Opens a file written by `save` (or in its layout, `util::bin_fields`)
-/// past its magic tag; with the file's size, the most its payload can hold.
+/// Opens a file of an older version (a magic tag, then bincode's layout:
+/// `util::bin_fields`) past its magic tag; with the file's size, the most its payload can hold.
 pub fn open_tagged(path: &Path, magic: &[u8; 8], what: &str) -> Result<(BufReader<File>, u64)> {
     if !path.exists() {
         let message = format!("{} does not exist (expected {what})", path.display());

@@ -9,7 +9,6 @@ pub mod costs;
 pub mod device_stats;
 pub(crate) mod diverged;
 pub mod files;
-pub mod gather_op;
 pub mod image;
 pub mod input;
 pub mod label;
@@ -21,9 +20,9 @@ pub(crate) mod pool;
 pub mod profile;
 pub mod progress;
 pub(crate) mod rng;
-pub(crate) mod rows_op;
 pub mod safetensors;
 pub mod tensor;
+pub mod tensor_file;
 pub mod transfer;
 
 /// `(start, len)` of consecutive pieces of at most `chunk` items covering

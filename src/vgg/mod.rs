@@ -28,13 +28,11 @@ use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 use thiserror::Error;
 
+use crate::kernels::conv_op::PreparedSlot;
 pub use crate::util::tensor::image_tensor;
-use crate::vgg::conv_op::PreparedSlot;
 use crate::vgg::model::Model;
 
 pub mod alexnet;
-pub(crate) mod conv3x3;
-pub(crate) mod conv_op;
 pub mod features;
 pub(crate) mod model;
 pub(crate) mod staged;
@@ -202,7 +200,7 @@ pub enum VggForward {
     /// requested layer (`vgg::staged`; the same numbers, less work).
     Staged,
     /// As `Staged`, with the 3x3 convolutions run by the project's Winograd
-    /// kernel on the CPU backends (`vgg::conv3x3`, `vgg::conv_op`; Burn's
+    /// kernel on the CPU backends (`kernels::conv3x3`, `kernels::conv_op`; Burn's
     /// own convolution on wgpu): the default.
     #[default]
     Winograd,

@@ -6,14 +6,14 @@
 
 use burn::tensor::Tensor;
 
+use crate::kernels::conv_op::{PreparedSlot, conv3x3_relu_forward};
 use crate::vgg::VggLayer;
-use crate::vgg::conv_op::{PreparedSlot, conv3x3_relu_forward};
 use crate::vgg::model::Model;
 
 /// The ReLU outputs of `model` up to the deepest of `layers`, in network
 /// order (13 entries, `None` past the deepest).
 /// With `prepared` (slots for the first convolutions) the 3x3 convolutions
-/// run through `vgg::conv_op` (on the CPU backends, with the slots'
+/// run through `kernels::conv_op` (on the CPU backends, with the slots'
 /// prepared weights where there is a slot; Burn's `conv2d` elsewhere),
 /// without it through Burn's `conv2d`.
 pub fn forward(

@@ -36,7 +36,7 @@ mod cube_op {
     use burn_cubecl::kernel::into_contiguous;
     use burn_cubecl::tensor::CubeTensor;
 
-    use crate::util::gather_op::one_per_value;
+    use crate::kernels::gather_op::one_per_value;
 
     /// RMSprop's step on chosen rows (module docs).
     #[backend_extension(Cube, Autodiff)]

@@ -1,10 +1,10 @@
-//! `vgg::conv3x3`'s kernel as a Burn operation with its own backward, for
+//! `kernels::conv3x3`'s kernel as a Burn operation with its own backward, for
 //! the CPU backends (flex, ndarray) and autodiff over them.
 //!
 //! Burn 0.22 picks the backend at run time (`Dispatch`); an operation of
 //! our own is a backend extension trait that the `backend_extension` macro
 //! routes to the backend a tensor lives on. The CPU backends implement it
-//! on host memory (`vgg::conv3x3`), `Autodiff<B>` records a backward step
+//! on host memory (`kernels::conv3x3`), `Autodiff<B>` records a backward step
 //! whose gradients are the kernel's. On wgpu [`conv3x3`] is Burn's own
 //! `conv2d` (the GPU has its own convolution kernels), and so are convolutions
 //! other than 3x3 / stride 1 / padding 1.
@@ -19,7 +19,7 @@ use burn::nn::PaddingConfig2d;
 use burn::nn::conv::Conv2d;
 use burn::tensor::Tensor;
 
-use crate::vgg::conv3x3::PreparedWeights;
+use crate::kernels::conv3x3::PreparedWeights;
 
 #[cfg(any(feature = "flex", feature = "ndarray"))]
 use crate::util::tensor::is_host_memory;
@@ -43,7 +43,7 @@ mod host_op {
 
     use std::sync::Arc;
 
-    use crate::vgg::conv3x3::{self as kernel, Dims, PreparedWeights, WinogradWeights};
+    use crate::kernels::conv3x3::{self as kernel, Dims, PreparedWeights, WinogradWeights};
 
     /// A 3x3 convolution, stride 1, zero padding 1, with bias, and optionally
     /// the ReLU after it (VGG's pairs: one pass over the output instead of two,
@@ -353,7 +353,7 @@ mod graph_oracle {
     use crate::test_support::{backend, max_rel_err, tol};
     use crate::util::tensor::{floats, to_vec};
 
-    /// The 3x3 convolution operation (`vgg::conv_op`: the Winograd kernel on
+    /// The 3x3 convolution operation (`kernels::conv_op`: the Winograd kernel on
     /// the CPU backends, Burn's `conv2d` on wgpu) against Burn's `conv2d`,
     /// without and with the fused ReLU: the output and the gradients of the
     /// input, the weights and the bias, to 1e-4 relative (1e-3 on wgpu), on a
@@ -377,7 +377,7 @@ mod graph_oracle {
             let (x, weight, bias) =
                 (x.clone().require_grad(), weight.clone().require_grad(), bias.clone().require_grad());
             let y = if ours {
-                crate::vgg::conv_op::conv3x3(x.clone(), weight.clone(), bias.clone(), relu)
+                crate::kernels::conv_op::conv3x3(x.clone(), weight.clone(), bias.clone(), relu)
             } else {
                 let y =
                     conv2d(x.clone(), weight.clone(), Some(bias.clone()), ConvOptions::new([1, 1], [1, 1], [1, 1], 1));
@@ -408,7 +408,7 @@ mod graph_oracle {
     /// second call through the filled slot gives the same output.
     #[test]
     fn prepared_conv3x3_matches_burns_conv2d() {
-        use crate::vgg::conv_op::{PreparedSlot, conv3x3_relu_forward};
+        use crate::kernels::conv_op::{PreparedSlot, conv3x3_relu_forward};
         use burn::nn::PaddingConfig2d;
         use burn::nn::conv::Conv2dConfig;
         let device = backend().autodiff_device();

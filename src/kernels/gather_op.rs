@@ -292,7 +292,7 @@ mod cube_op {
     /// `compact`: the runs are those of the rows `touched` (the other rows'
     /// zeros are already written), else run `k` is row `k`'s. `weighted`:
     /// entry `e` adds `grad`'s row `e / group` times `weights[e]` (the
-    /// fused colour pass's backward, `field::frozen_op`), else `grad`'s
+    /// fused colour pass's backward, `kernels::frozen_op`), else `grad`'s
     /// row `e`.
     #[cube(launch)]
     #[allow(clippy::too_many_arguments)]
@@ -449,7 +449,7 @@ mod cube_op {
     }
 
     /// One unit per value: the cube count and size for `units` values
-    /// (every kernel of ours launches this way, `field::composite_op`'s too).
+    /// (every kernel of ours launches this way, `kernels::composite_op`'s too).
     pub(crate) fn one_per_value(client: &Client, units: usize) -> (CubeCount, CubeDim) {
         let cube_dim = CubeDim::new(client, units);
         (calculate_cube_count_elemwise(client, units, cube_dim), cube_dim)

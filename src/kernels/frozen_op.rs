@@ -13,13 +13,13 @@
 //! rows as it goes; the backward is one thread per (sample, channel) for
 //! the gradient before the ReLU (`[s, 3]`, the only per-sample tensor),
 //! then one thread per (row, channel) summing its entries through the
-//! corners' transpose (`util::gather_op::RowIndex`), each times its colour
+//! corners' transpose (`kernels::gather_op::RowIndex`), each times its colour
 //! weight: no atomics, the same sums on every run. `frozen`'s
 //! `graph_oracle` test holds it to the graph.
 
 use burn::tensor::{Int, Tensor};
 
-use crate::util::gather_op::RowIndex;
+use crate::kernels::gather_op::RowIndex;
 
 /// `[rays, 3]`: each ray's colour from degree-0 SH rows `sh` (`[rows, 3]`)
 /// without its background, differentiable in `sh`. `corners` must carry
@@ -73,8 +73,8 @@ mod cube_op {
     use burn_cubecl::ops::numeric::empty_device_dtype;
     use burn_cubecl::tensor::CubeTensor;
 
+    use crate::kernels::gather_op::{one_per_value, sum_weighted_by_rows};
     use crate::scene::sh::C0;
-    use crate::util::gather_op::{one_per_value, sum_weighted_by_rows};
 
     /// The fused frozen-density colour pass (module docs).
     #[backend_extension(Cube, Autodiff)]

@@ -9,7 +9,7 @@
 //! loop waits on memory one row at a time: 35 ms per update of the SH on
 //! fern, four of them a step. Here the rows are split over threads.
 //!
-//! A backend extension trait (as `vgg::conv_op`): flex implements it on its
+//! A backend extension trait (as `kernels::conv_op`): flex implements it on its
 //! storage; ndarray implements it with Burn's own operations; wgpu (and any
 //! other backend) never gets here, since the callers check
 //! `is_host_memory` first and use `select` / `select_assign` otherwise.
@@ -20,7 +20,7 @@
 
 use burn::tensor::{IndexingUpdateOp, Int, Tensor};
 
-use crate::util::gather_op::write_rows;
+use crate::kernels::gather_op::write_rows;
 #[cfg(any(feature = "flex", feature = "ndarray"))]
 use crate::util::tensor::is_host_memory;
 use crate::util::tensor::{select_rows, to_vec};
@@ -403,7 +403,7 @@ pub fn for_each_row_block<E>(
     mut f: impl FnMut(&[f32]) -> Result<(), E>,
 ) -> Result<(), E> {
     let [num_rows, cols] = tensor.dims();
-    let blocks = super::chunk_ranges(num_rows, (block_values / cols.max(1)).max(1));
+    let blocks = crate::util::chunk_ranges(num_rows, (block_values / cols.max(1)).max(1));
     #[cfg(any(feature = "flex", feature = "ndarray"))]
     if is_host_memory(&tensor.device()) {
         let t = tensor.clone().into_dispatch();
@@ -463,7 +463,7 @@ pub fn update_row_pairs(
 
 /// `tensor` with `values` added to its rows `rows` (`rows_t` the same
 /// indices as a tensor). In place when `tensor` is uniquely owned. On a GPU
-/// the rows must be distinct (`util::gather_op::write_rows`), as an
+/// the rows must be distinct (`kernels::gather_op::write_rows`), as an
 /// optimiser step's are.
 pub fn add_to_rows(tensor: Tensor<2>, rows: &[i32], rows_t: &Tensor<1, Int>, values: Tensor<2>) -> Tensor<2> {
     #[cfg(any(feature = "flex", feature = "ndarray"))]
@@ -539,13 +539,13 @@ mod graph_oracle {
     use crate::test_support::device;
     use crate::util::tensor::{floats, to_vec};
 
-    /// The optimisers' row gathers and row adds (`util::rows_op`: parallel and
+    /// The optimisers' row gathers and row adds (`kernels::rows_op`: parallel and
     /// in place on flex, Burn's `select` / `select_assign` elsewhere) give what
     /// Burn's own operations give, repeated rows included (distinct rows for
     /// a GPU's add), on every backend.
     #[test]
     fn row_gathers_and_adds_match_select_and_select_assign() {
-        use crate::util::rows_op::{add_to_rows, gather_rows, read_rows_into};
+        use crate::kernels::rows_op::{add_to_rows, gather_rows, read_rows_into};
         use crate::util::tensor::{assign_rows, indices, select_rows};
         let d = device();
         let (n, cols) = (5000, 7);

@@ -13,7 +13,7 @@
 //! writes 4 values a sample: the gradient
 //! of its interpolated density and of its 3 colour channels before their
 //! ReLUs. The rows' gradients are then summed by one thread per (row,
-//! column) through the corner index's transpose (`util::gather_op`'s
+//! column) through the corner index's transpose (`kernels::gather_op`'s
 //! `RowIndex`), which multiplies by the trilinear weights and the SH basis
 //! on the fly: no atomics (floats have them only on some adapters), the
 //! same sums on every run, and nothing of size `[8 s, 27]` allocated.
@@ -31,7 +31,7 @@ use burn::tensor::{Int, Tensor};
 /// `composite::BatchTensors` uploads them, and the rays' sample ranges.
 pub struct FusedInputs<'a> {
     pub corners: &'a Tensor<1, Int>,
-    /// `corners`' transpose (`util::gather_op::transpose_of`), which the
+    /// `corners`' transpose (`kernels::gather_op::transpose_of`), which the
     /// backward sums the rows' gradients through.
     pub transpose: (&'a Tensor<1, Int>, &'a Tensor<1, Int>),
     pub corner_weights: &'a Tensor<2>,
@@ -92,7 +92,7 @@ mod cube_op {
     use burn_cubecl::ops::numeric::empty_device_dtype;
     use burn_cubecl::tensor::CubeTensor;
 
-    use crate::util::gather_op::one_per_value;
+    use crate::kernels::gather_op::one_per_value;
 
     /// The fused compositing of a packed sample batch (module docs).
     #[backend_extension(Cube, Autodiff)]

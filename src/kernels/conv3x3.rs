@@ -1,6 +1,6 @@
 //! The 3x3 convolution (stride 1, zero padding 1: every convolution of
 //! VGG16) on host memory, with both of its gradients. Plain Rust over
-//! row-major `[N, C, H, W]` slices; `vgg::conv_op` makes it a Burn
+//! row-major `[N, C, H, W]` slices; `kernels::conv_op` makes it a Burn
 //! operation.
 //!
 //! Why it exists (issue 19): burn-flex runs a convolution as im2col + gemm
