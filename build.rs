@@ -15,7 +15,7 @@
 //! It also sets `cfg(refnpr_dynamic_std)` when the build links the standard
 //! library dynamically (`-C prefer-dynamic`, as evcxr builds and as CI builds
 //! the tests so the notebooks reuse them): the binary's global allocator
-//! must then stay the system's (see src/bin/refnpr.rs).
+//! must then stay the system's (see src/bin/refnpr/main.rs).
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

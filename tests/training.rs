@@ -139,7 +139,6 @@ fn assert_safetensors_file(file: &[u8], meta_json: &str, tensors: &[(&str, &str,
 /// written before still load.
 #[test]
 fn a_checkpoint_streamed_in_blocks_is_a_safetensors_file_of_its_arrays() {
-    #[derive(serde::Serialize)]
     struct Whole {
         meta_json: String,
         coords: Vec<u32>,
@@ -218,13 +217,32 @@ fn a_checkpoint_streamed_in_blocks_is_a_safetensors_file_of_its_arrays() {
     }
     fields.insert("config".into(), serde_json::to_value(&config).unwrap());
     let earlier = Whole { meta_json: old.to_string(), coords: ck_coords, sh: ck_sh, ..whole };
-    // (Written as bincode's layout after the tag REFNPRG1: the checkpoint file before safetensors.)
-    std::fs::write(&path, [&b"REFNPRG1"[..], &bincode::serialize(&earlier).unwrap()].concat()).unwrap();
+    // Written as bincode 1 laid the struct out after the tag REFNPRG1 (the
+    // checkpoint file before safetensors): each field in order, a string or
+    // vector as its length (little-endian u64) then its little-endian values.
+    let floats = [&earlier.density[..], &earlier.sh, &earlier.opt_density, &earlier.opt_sh];
+    std::fs::write(&path, legacy_checkpoint(&earlier.meta_json, &earlier.coords, &floats)).unwrap();
     let ck = checkpoint::load(&path, &dev).unwrap();
     assert_eq!(ck.meta.render, config.render_settings());
     assert_eq!(ck.meta.data, config.data);
     assert_eq!(serde_json::from_value::<TrainConfig>(ck.meta.run_config).unwrap(), config);
     assert_eq!(to_vec(ck.grid.sh), earlier.sh);
+}
+
+/// A checkpoint file before safetensors: the tag REFNPRG1, then bincode 1's
+/// layout of its fields (the metadata's JSON, the coordinates, the four
+/// float arrays), each a little-endian u64 length then little-endian values.
+fn legacy_checkpoint(meta_json: &str, coords: &[u32], floats: &[&[f32]]) -> Vec<u8> {
+    let mut out = b"REFNPRG1".to_vec();
+    out.extend((meta_json.len() as u64).to_le_bytes());
+    out.extend(meta_json.as_bytes());
+    out.extend((coords.len() as u64).to_le_bytes());
+    out.extend(coords.iter().flat_map(|x| x.to_le_bytes()));
+    for values in floats {
+        out.extend((values.len() as u64).to_le_bytes());
+        out.extend(values.iter().flat_map(|x| x.to_le_bytes()));
+    }
+    out
 }
 
 /// `train --resume --steps N`: the command's step count wins, so a finished

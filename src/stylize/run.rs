@@ -1,4 +1,5 @@
-//! `refnpr stylize`, from files to files: check the inputs and the memory,
+//! `refnpr stylize`, from files to files: check the inputs and the memory
+//! (`inputs`), tell a recolouring (`recolouring`),
 //! register (or read `registration.bin`), read the style images, then the
 //! loops - the refit, the guides, the image epochs and the smooth update,
 //! each step a `StyleStep` call - with their resume points and phase
@@ -9,76 +10,35 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{Result, bail, ensure};
+use anyhow::{Result, bail};
 use burn::tensor::Tensor;
 use rand::seq::SliceRandom;
 
-use crate::field::checkpoint::{self, Checkpoint};
-use crate::field::march::Marcher;
+use crate::field::checkpoint;
 use crate::field::render_path::render_frames;
-use crate::reference::case::ReferenceCase;
-use crate::reference::registration::{PhotoRun, RegistrationFile, lift_references, register_case};
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
-use crate::stylize::colour_map::ColourMap;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::config::StylizeConfig;
 use crate::stylize::guides::{self, ColourSource, Content};
+use crate::stylize::inputs::{Inputs, keeps_content, registration, style_side};
+use crate::stylize::recolouring::{FittedMap, explained_on_content, fit_colour_map, with_recolouring_schedule};
 use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::step::{Guidance, StyleStep};
-use crate::stylize::styles::{arf_colour_transfer, is_background, painted_over, read_styles, style_colour_stats};
-use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
-use crate::stylize::{ColourMapReport, CurvePoint, Method, StepKind, StylizeJob, StylizeReport};
+use crate::stylize::styles::is_background;
+use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob, StylizeReport};
 use crate::util::costs::Work;
 use crate::util::diverged;
 use crate::util::files;
 use crate::util::image::Image;
 use crate::util::lock::OutputLock;
-use crate::util::memory::{available_memory_bytes, peak_rss_mb};
+use crate::util::memory::peak_rss_mb;
 use crate::util::metrics::psnr_from_mse;
 use crate::util::profile::{self, PartTime};
 use crate::util::progress::{Event, Phase, Progress, WarningLog};
 use crate::util::rng::epoch_rng;
 use crate::util::tensor::to_vec;
 use crate::util::transfer::{self, PhaseLog, PhaseTransfers, Transfers};
-use crate::vgg::{self, VggLayer};
-
-/// What a stylization starts from: the photoreal run, its dataset and the reference case.
-struct Inputs {
-    ck: Checkpoint,
-    dataset: Dataset,
-    case: ReferenceCase,
-    /// The training views' size `[width, height]`.
-    image_size: [usize; 2],
-}
-
-impl Inputs {
-    /// Reads and checks them (`preflight`) before any work.
-    fn load(job: &StylizeJob, progress: &dyn Progress) -> Result<Self> {
-        job.config.validate()?;
-        let device = job.backend.open(progress)?;
-        // The stylized field is view-independent: only the DC band is read.
-        let (ck, dataset) = checkpoint::load_run_view_independent(&job.photo, job.data.as_deref(), &device)?;
-        // The stylization's steps mix the field's tensors with VGG16's: one device.
-        ensure!(
-            ck.grid.device() == device,
-            "{}: the field's {} voxels of colour do not fit in one of the wgpu adapter's buffers ({}): stylize \
-             with --backend flex",
-            job.photo.display(),
-            ck.grid.num_rows(),
-            crate::util::backend::max_buffer_bytes(&device).map(transfer::human_bytes).unwrap_or_default()
-        );
-        let case = ReferenceCase::load(&job.case)?;
-        if let Some(m) = case.scene_mismatch(&dataset) {
-            bail!(
-                "{m}: the reference case does not belong to the photoreal run {} (fix `scene_name` in the case if it does)",
-                job.photo.display()
-            );
-        }
-        let image_size = preflight(job, &ck, &dataset)?;
-        Ok(Inputs { ck, dataset, case, image_size })
-    }
-}
 
 /// `refnpr stylize`.
 pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeReport> {
@@ -116,7 +76,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         st.step.stylize_far(progress);
     }
     let colour = job.method == Method::RefNpr && job.config.ablation.use_colour_loss && case.color_pre;
-    st.fit_colour_map(&styles, explained_on_content, progress);
+    st.colour_map = fit_colour_map(job, &st.step, &styles, explained_on_content, progress);
     let (guidance, colour_matched) = st.content_phase(&styles, colour, image_size, &mut phases, progress)?;
     st.recolour_field();
     let sample_cache = st.step.samples.report(job.config.sample_cache_mb);
@@ -167,25 +127,6 @@ fn render_test_views(job: &StylizeJob, dataset: &Dataset, progress: &dyn Progres
         render_frames(&style_ck, &cams, &job.out.join("test"), progress)?;
     }
     Ok(())
-}
-
-/// The references' colour map and what its fit says of the case.
-struct FittedMap {
-    map: ColourMap,
-    report: ColourMapReport,
-}
-
-impl FittedMap {
-    /// L_color's targets through the map: a recolouring's weight and
-    /// patches, or `[loss] colour` over `target_patch`-pixel patches.
-    fn targets(&self, cfg: &StylizeConfig) -> ColourSource<'_> {
-        let c = &cfg.colour_map;
-        let (patch, weight) = match self.report.recolouring {
-            true => (c.recolour_patch, c.recolour_weight),
-            false => (c.target_patch, cfg.loss.colour),
-        };
-        ColourSource::Mapped { map: &self.map, patch, weight }
-    }
 }
 
 /// A stylization in progress: its step, the loss curve so far, and what
@@ -287,47 +228,6 @@ impl<'a> Stylization<'a> {
         }
         self.finish_profile("refit");
         Ok(())
-    }
-
-    /// Ref-NPR with `[colour_map]` on: fits the references' colour mapping
-    /// on their content renders from the refit field. Whether it is a
-    /// recolouring is measured on content.png where the case keeps it
-    /// (`explained_on_content`): the refit render differs from the photo
-    /// render by the refit's own error, which can outweigh a mild grade's
-    /// whole change (lego teal-orange: 45 % explained on the refit render).
-    fn fit_colour_map(&mut self, styles: &[Image], explained_on_content: Option<f32>, progress: &dyn Progress) {
-        let cfg = &self.job.config.colour_map;
-        if self.job.method != Method::RefNpr || !cfg.is_on() {
-            return;
-        }
-        let contents: Vec<Image> = (0..styles.len()).map(|r| self.step.render_reference(r)).collect();
-        let pairs: Vec<(&Image, &Image)> = contents.iter().zip(styles).collect();
-        let map = ColourMap::fit(&pairs, cfg, self.step.background());
-        let (explained, explained_on) = match explained_on_content {
-            Some(e) => (e, "content.png"),
-            None => (map.explained(&pairs), "the refit render"),
-        };
-        let recolouring = explained >= cfg.recolour_explained;
-        let report = ColourMapReport { pixels: map.pixels, explained, explained_on, recolouring };
-        let map = match report.recolouring {
-            true => ColourMap::fit(&pairs, &cfg.recolouring(), self.step.background()),
-            false => map,
-        };
-        progress.info(format!(
-            "colour map fitted on {} reference pixels; it explains {:.0} % of the painting's change (measured on {explained_on}){}",
-            map.pixels,
-            100.0 * explained,
-            match report.recolouring {
-                true => format!(
-                    ": a recolouring (the map fitted again sharper, L_color {} over {}-pixel patches, the {} learning-rate schedule)",
-                    cfg.recolour_weight,
-                    cfg.recolour_patch,
-                    self.job.config.schedule.lr_schedule.name()
-                ),
-                false => String::new(),
-            }
-        ));
-        self.colour_map = Some(FittedMap { map, report });
     }
 
     /// `colour_map.init_field`: the refit field's colours through the map
@@ -618,151 +518,6 @@ impl<'a> Stylization<'a> {
     }
 }
 
-/// The style images and, for ARF with either colour transfer on, the style's
-/// colour statistics (both transfers aim at them) and the photos'
-/// recolouring (`--style` is ARF's alone).
-fn style_side(
-    job: &StylizeJob,
-    case: &ReferenceCase,
-    dataset: &Dataset,
-    registration: &RegistrationFile,
-    background: [f32; 3],
-    warnings: &mut WarningLog,
-) -> Result<(Vec<Image>, Option<ColourStats>, Option<ColourTransfer>)> {
-    let own_style = job.style.as_deref().filter(|_| job.method == Method::Arf);
-    let styles = read_styles(case, registration, own_style, background, warnings)?;
-    let arf = &job.config.arf;
-    if job.method != Method::Arf || !(arf.colour_transfer || arf.post_transfer) {
-        return Ok((styles, None, None));
-    }
-    let which = arf.transfer_pixels;
-    let style = style_colour_stats(&styles[0], registration, own_style.is_some(), background, which)?;
-    if !arf.colour_transfer {
-        return Ok((styles, Some(style), None));
-    }
-    let tf = arf_colour_transfer(dataset, &style, background, which)?;
-    warnings.progress().info(format!("ARF colour transfer: photos recoloured with {:?} + {:?}", tf.matrix, tf.offset));
-    Ok((styles, Some(style), Some(tf)))
-}
-
-/// Whether the content features of every view are kept (λ' > 0).
-/// What a one-reference case's colour map explains of its painting,
-/// measured on the image it was painted over (`painted_over`: content.png),
-/// before any work on the field. None for ARF, with the colour map off, or
-/// for a case without content.png (then measured on the refit render,
-/// after the refit).
-fn explained_on_content(
-    job: &StylizeJob,
-    case: &ReferenceCase,
-    dataset: &Dataset,
-    background: [f32; 3],
-) -> Option<f32> {
-    if job.method != Method::RefNpr || !job.config.colour_map.is_on() {
-        return None;
-    }
-    let (content, style) = painted_over(case, dataset, background)?;
-    let pair = [(&content, &style)];
-    Some(ColourMap::fit(&pair, &job.config.colour_map, background).explained(&pair))
-}
-
-/// The job as it runs: a recolouring recognised on content.png takes
-/// `[colour_map] recolour_lr_schedule` for the whole stylization, the
-/// refit included (it must be known before the refit's first step). The
-/// run's stylize.json and resume key carry the schedule it ran with.
-fn with_recolouring_schedule(job: &StylizeJob, explained_on_content: Option<f32>) -> StylizeJob {
-    let mut job = job.clone();
-    let cm = &job.config.colour_map;
-    if explained_on_content.is_some_and(|e| e >= cm.recolour_explained) {
-        job.config.schedule.lr_schedule = cm.recolour_lr_schedule;
-    }
-    job
-}
-
-fn keeps_content(job: &StylizeJob) -> bool {
-    let cfg = &job.config;
-    match job.method {
-        Method::RefNpr => cfg.loss.content > 0.0 && cfg.ablation.use_feature_loss,
-        Method::Arf => cfg.arf.content > 0.0,
-    }
-}
-
-/// Refuses, before any work, views too small for VGG16 and feature caches
-/// that would not fit in memory. Returns the views' size `[width, height]`.
-fn preflight(job: &StylizeJob, ck: &Checkpoint, dataset: &Dataset) -> Result<[usize; 2]> {
-    if dataset.train.is_empty() {
-        bail!("the photoreal run's dataset {} has no training views", dataset.root.display());
-    }
-    let cam0 = dataset.train[0].camera.intrinsics;
-    let (width, height) = (cam0.width as usize, cam0.height as usize);
-    if width < vgg::MIN_SIDE || height < vgg::MIN_SIDE {
-        bail!("training views are {width}x{height}: stylization needs at least {0}x{0} (VGG16)", vgg::MIN_SIDE);
-    }
-    let half = job.method == Method::Arf && job.config.arf.half_resolution;
-    if half && (width < 2 * vgg::MIN_SIDE || height < 2 * vgg::MIN_SIDE) {
-        bail!(
-            "training views are {width}x{height}: arf.half_resolution needs at least {0}x{0} (VGG16 at half size)",
-            2 * vgg::MIN_SIDE
-        );
-    }
-    let grid_bytes = ck.grid.num_rows() as u64 * 3 * 4 * 6; // SH, RMSprop state, gradients
-    // Bytes per kept content feature: f16 with `half_content_features` (on
-    // the CPU backends, whose memory this checks).
-    let content_bytes = match (keeps_content(job), job.config.half_content_features) {
-        (false, _) => 0,
-        (true, true) => 2,
-        (true, false) => 4,
-    };
-    let per_view = feature_cache_bytes(job.method, 1, width, height, content_bytes);
-    let need = per_view * dataset.train.len() as u64 + grid_bytes;
-    if let Some(avail) = available_memory_bytes()
-        && need > avail / 4 * 3
-    {
-        let fit = (avail / 4 * 3).saturating_sub(grid_bytes) / per_view.max(1);
-        bail!(
-            "stylizing {} views of {width}x{height} needs about {:.1} GB for feature caches and the grid, but {:.1} GB is available \
-             (about {fit} views fit): use a lower-resolution photoreal run, or set loss.content = 0 (drops the cached content features)",
-            dataset.train.len(),
-            need as f64 / 1e9,
-            avail as f64 / 1e9
-        );
-    }
-    Ok([width, height])
-}
-
-/// The pseudo-rays: R³ on the photoreal field, or the `registration.bin`
-/// of `job.registration` after checking it belongs to this run and case.
-fn registration(
-    job: &StylizeJob,
-    ck: &Checkpoint,
-    dataset: &Dataset,
-    case: &ReferenceCase,
-    warnings: &mut WarningLog,
-) -> Result<RegistrationFile> {
-    match &job.registration {
-        None => {
-            let (file, report) = register_case(ck, dataset, case, &job.config.register, warnings.progress())?;
-            warnings.extend_reported(report.warnings);
-            Ok(file)
-        }
-        Some(given) => {
-            let path = &RegistrationFile::resolve(given);
-            let file = RegistrationFile::load(path)?;
-            // The case's references as they are now, to compare with the file's.
-            let (_, references) = lift_references(ck, &Marcher::new(&ck.grid), dataset, case, warnings)?;
-            file.check_matches(&PhotoRun::of(ck), dataset, &references, path)?;
-            if file.params != job.config.register {
-                warnings.push(format!(
-                    "{} was registered with {:?}, not this config's [register] {:?}: using the file",
-                    path.display(),
-                    file.params,
-                    job.config.register
-                ));
-            }
-            Ok(file)
-        }
-    }
-}
-
 /// The stylized checkpoint (a normal grid with SH degree 0) and the
 /// stylized renders of the reference views.
 fn save_outputs(
@@ -788,24 +543,6 @@ fn save_outputs(
     Ok(())
 }
 
-/// Bytes the per-view feature caches need (raw content features of the
-/// feature blocks, `content_bytes` a number, plus match indices).
-fn feature_cache_bytes(method: Method, views: usize, width: usize, height: usize, content_bytes: usize) -> u64 {
-    let blocks: Vec<&[VggLayer]> = match method {
-        Method::RefNpr => FEATURE_BLOCKS.to_vec(),
-        Method::Arf => vec![&RELU3],
-    };
-    let per_view: usize = blocks
-        .iter()
-        .map(|b| {
-            let [h, w] = tcm::block_size(b, height, width);
-            let c: usize = b.iter().map(|l| l.channels()).sum();
-            h * w * (c * content_bytes + 8)
-        })
-        .sum();
-    (per_view * views) as u64
-}
-
 /// The name a stylization carries in the cost ledger (`util::costs`).
 fn job_name(method: Method) -> String {
     format!("stylize {method}")
@@ -815,69 +552,6 @@ fn job_name(method: Method) -> String {
 mod tests {
     use super::*;
     use crate::util::costs::Ledger;
-
-    /// A recolouring told by content.png runs with `[colour_map]
-    /// recolour_lr_schedule` from the refit's first step on; painted
-    /// strokes, ARF, the colour map off and a case without content.png
-    /// keep `[schedule] lr_schedule`.
-    #[test]
-    fn a_recolouring_on_content_png_takes_its_own_schedule() {
-        use crate::scene::data::{self, procedural};
-        use crate::stylize::config::LrSchedule;
-        let dir = crate::test_support::temp_dir("recolour-schedule");
-        let opts =
-            procedural::SceneOptions { seed: 2, size: 48, num_train: 1, num_val: 1, num_test: 1, environment: false };
-        procedural::write_scene(&dir.join("scene"), &opts).unwrap();
-        let dataset = data::load(&dir.join("scene"), &Default::default()).unwrap();
-        let view = &dataset.train[0];
-        let (w, h) = (view.camera.intrinsics.width as usize, view.camera.intrinsics.height as usize);
-        let case_dir = dir.join("case");
-        std::fs::create_dir_all(&case_dir).unwrap();
-        std::fs::write(case_dir.join("reference.toml"), "[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\n")
-            .unwrap();
-        Image::new(w, h, view.rgb.clone()).save_png(&case_dir.join("content.png")).unwrap();
-        // A function of colour alone (channels swapped), and yellow stripes
-        // painted over every other 4-pixel column (a function of position).
-        let swapped: Vec<f32> = view.rgb.chunks_exact(3).flat_map(|c| [c[1], c[2], c[0]]).collect();
-        let striped: Vec<f32> = (0..w * h)
-            .flat_map(|i| match (i % w / 4) % 2 {
-                0 => [1.0, 0.9, 0.1],
-                _ => [view.rgb[3 * i], view.rgb[3 * i + 1], view.rgb[3 * i + 2]],
-            })
-            .collect();
-        let schedule = |style: &[f32], method: Method, config: StylizeConfig| {
-            Image::new(w, h, style.to_vec()).save_png(&case_dir.join("style.png")).unwrap();
-            let case = ReferenceCase::load(&case_dir).unwrap();
-            let job = StylizeJob {
-                photo: dir.join("photo"),
-                case: case_dir.clone(),
-                out: dir.join("out"),
-                config,
-                method,
-                backend: Default::default(),
-                style: None,
-                data: None,
-                registration: None,
-                render_test: false,
-                resume: false,
-            };
-            let explained = explained_on_content(&job, &case, &dataset, dataset.background);
-            with_recolouring_schedule(&job, explained).config.schedule.lr_schedule
-        };
-        let defaults = StylizeConfig::default();
-        assert_eq!(defaults.schedule.lr_schedule, LrSchedule::Shared);
-        assert_eq!(schedule(&swapped, Method::RefNpr, defaults.clone()), LrSchedule::PerPhase, "a recolouring");
-        assert_eq!(schedule(&striped, Method::RefNpr, defaults.clone()), LrSchedule::Shared, "painted stripes");
-        assert_eq!(schedule(&swapped, Method::Arf, defaults.clone()), LrSchedule::Shared, "ARF");
-        let mut off = defaults.clone();
-        (off.colour_map.init_field, off.colour_map.colour_targets) = (false, false);
-        assert_eq!(schedule(&swapped, Method::RefNpr, off), LrSchedule::Shared, "the colour map off");
-        let mut shared = defaults.clone();
-        shared.colour_map.recolour_lr_schedule = LrSchedule::Shared;
-        assert_eq!(schedule(&swapped, Method::RefNpr, shared), LrSchedule::Shared, "recolour_lr_schedule = shared");
-        std::fs::remove_file(case_dir.join("content.png")).unwrap();
-        assert_eq!(schedule(&swapped, Method::RefNpr, defaults), LrSchedule::Shared, "no content.png");
-    }
 
     /// Both methods find the reference machine's record before this machine has one.
     #[test]

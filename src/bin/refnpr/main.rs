@@ -186,6 +186,7 @@ fn keep_freed_memory() {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::path::Path;
 
     /// The names of `cmd`'s arguments and subcommands that say nothing in `--help`.
     fn without_help(cmd: &clap::Command, path: &str, missing: &mut Vec<String>) {

@@ -1,0 +1,191 @@
+//! What a stylization starts from, read and checked before any work: the
+//! photoreal run, its dataset and the reference case (`Inputs`), the views'
+//! size against VGG16 and the feature caches against memory
+//! (`preflight`), the pseudo-rays (R³, or a given `registration.bin`) and
+//! the style side (the style images, ARF's colour statistics and photo
+//! recolouring).
+
+use anyhow::{Result, bail, ensure};
+
+use crate::field::checkpoint::{self, Checkpoint};
+use crate::field::march::Marcher;
+use crate::reference::case::ReferenceCase;
+use crate::reference::registration::{PhotoRun, RegistrationFile, lift_references, register_case};
+use crate::scene::data::Dataset;
+use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
+use crate::stylize::styles::{arf_colour_transfer, read_styles, style_colour_stats};
+use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
+use crate::stylize::{Method, StylizeJob};
+use crate::util::image::Image;
+use crate::util::memory::available_memory_bytes;
+use crate::util::progress::{Progress, WarningLog};
+use crate::util::transfer;
+use crate::vgg::{self, VggLayer};
+
+/// What a stylization starts from: the photoreal run, its dataset and the reference case.
+pub(crate) struct Inputs {
+    pub ck: Checkpoint,
+    pub dataset: Dataset,
+    pub case: ReferenceCase,
+    /// The training views' size `[width, height]`.
+    pub image_size: [usize; 2],
+}
+
+impl Inputs {
+    /// Reads and checks them (`preflight`) before any work.
+    pub fn load(job: &StylizeJob, progress: &dyn Progress) -> Result<Self> {
+        job.config.validate()?;
+        let device = job.backend.open(progress)?;
+        // The stylized field is view-independent: only the DC band is read.
+        let (ck, dataset) = checkpoint::load_run_view_independent(&job.photo, job.data.as_deref(), &device)?;
+        // The stylization's steps mix the field's tensors with VGG16's: one device.
+        ensure!(
+            ck.grid.device() == device,
+            "{}: the field's {} voxels of colour do not fit in one of the wgpu adapter's buffers ({}): stylize \
+             with --backend flex",
+            job.photo.display(),
+            ck.grid.num_rows(),
+            crate::util::backend::max_buffer_bytes(&device).map(transfer::human_bytes).unwrap_or_default()
+        );
+        let case = ReferenceCase::load(&job.case)?;
+        if let Some(m) = case.scene_mismatch(&dataset) {
+            bail!(
+                "{m}: the reference case does not belong to the photoreal run {} (fix `scene_name` in the case if it does)",
+                job.photo.display()
+            );
+        }
+        let image_size = preflight(job, &ck, &dataset)?;
+        Ok(Inputs { ck, dataset, case, image_size })
+    }
+}
+
+/// Whether the content features of every view are kept (λ' > 0).
+pub(crate) fn keeps_content(job: &StylizeJob) -> bool {
+    let cfg = &job.config;
+    match job.method {
+        Method::RefNpr => cfg.loss.content > 0.0 && cfg.ablation.use_feature_loss,
+        Method::Arf => cfg.arf.content > 0.0,
+    }
+}
+
+/// Refuses, before any work, views too small for VGG16 and feature caches
+/// that would not fit in memory. Returns the views' size `[width, height]`.
+fn preflight(job: &StylizeJob, ck: &Checkpoint, dataset: &Dataset) -> Result<[usize; 2]> {
+    if dataset.train.is_empty() {
+        bail!("the photoreal run's dataset {} has no training views", dataset.root.display());
+    }
+    let cam0 = dataset.train[0].camera.intrinsics;
+    let (width, height) = (cam0.width as usize, cam0.height as usize);
+    if width < vgg::MIN_SIDE || height < vgg::MIN_SIDE {
+        bail!("training views are {width}x{height}: stylization needs at least {0}x{0} (VGG16)", vgg::MIN_SIDE);
+    }
+    let half = job.method == Method::Arf && job.config.arf.half_resolution;
+    if half && (width < 2 * vgg::MIN_SIDE || height < 2 * vgg::MIN_SIDE) {
+        bail!(
+            "training views are {width}x{height}: arf.half_resolution needs at least {0}x{0} (VGG16 at half size)",
+            2 * vgg::MIN_SIDE
+        );
+    }
+    let grid_bytes = ck.grid.num_rows() as u64 * 3 * 4 * 6; // SH, RMSprop state, gradients
+    // Bytes per kept content feature: f16 with `half_content_features` (on
+    // the CPU backends, whose memory this checks).
+    let content_bytes = match (keeps_content(job), job.config.half_content_features) {
+        (false, _) => 0,
+        (true, true) => 2,
+        (true, false) => 4,
+    };
+    let per_view = feature_cache_bytes(job.method, 1, width, height, content_bytes);
+    let need = per_view * dataset.train.len() as u64 + grid_bytes;
+    if let Some(avail) = available_memory_bytes()
+        && need > avail / 4 * 3
+    {
+        let fit = (avail / 4 * 3).saturating_sub(grid_bytes) / per_view.max(1);
+        bail!(
+            "stylizing {} views of {width}x{height} needs about {:.1} GB for feature caches and the grid, but {:.1} GB is available \
+             (about {fit} views fit): use a lower-resolution photoreal run, or set loss.content = 0 (drops the cached content features)",
+            dataset.train.len(),
+            need as f64 / 1e9,
+            avail as f64 / 1e9
+        );
+    }
+    Ok([width, height])
+}
+
+/// The pseudo-rays: R³ on the photoreal field, or the `registration.bin`
+/// of `job.registration` after checking it belongs to this run and case.
+pub(crate) fn registration(
+    job: &StylizeJob,
+    ck: &Checkpoint,
+    dataset: &Dataset,
+    case: &ReferenceCase,
+    warnings: &mut WarningLog,
+) -> Result<RegistrationFile> {
+    match &job.registration {
+        None => {
+            let (file, report) = register_case(ck, dataset, case, &job.config.register, warnings.progress())?;
+            warnings.extend_reported(report.warnings);
+            Ok(file)
+        }
+        Some(given) => {
+            let path = &RegistrationFile::resolve(given);
+            let file = RegistrationFile::load(path)?;
+            // The case's references as they are now, to compare with the file's.
+            let (_, references) = lift_references(ck, &Marcher::new(&ck.grid), dataset, case, warnings)?;
+            file.check_matches(&PhotoRun::of(ck), dataset, &references, path)?;
+            if file.params != job.config.register {
+                warnings.push(format!(
+                    "{} was registered with {:?}, not this config's [register] {:?}: using the file",
+                    path.display(),
+                    file.params,
+                    job.config.register
+                ));
+            }
+            Ok(file)
+        }
+    }
+}
+
+/// Bytes the per-view feature caches need (raw content features of the
+/// feature blocks, `content_bytes` a number, plus match indices).
+fn feature_cache_bytes(method: Method, views: usize, width: usize, height: usize, content_bytes: usize) -> u64 {
+    let blocks: Vec<&[VggLayer]> = match method {
+        Method::RefNpr => FEATURE_BLOCKS.to_vec(),
+        Method::Arf => vec![&RELU3],
+    };
+    let per_view: usize = blocks
+        .iter()
+        .map(|b| {
+            let [h, w] = tcm::block_size(b, height, width);
+            let c: usize = b.iter().map(|l| l.channels()).sum();
+            h * w * (c * content_bytes + 8)
+        })
+        .sum();
+    (per_view * views) as u64
+}
+
+/// The style images and, for ARF with either colour transfer on, the style's
+/// colour statistics (both transfers aim at them) and the photos'
+/// recolouring (`--style` is ARF's alone).
+pub(crate) fn style_side(
+    job: &StylizeJob,
+    case: &ReferenceCase,
+    dataset: &Dataset,
+    registration: &RegistrationFile,
+    background: [f32; 3],
+    warnings: &mut WarningLog,
+) -> Result<(Vec<Image>, Option<ColourStats>, Option<ColourTransfer>)> {
+    let own_style = job.style.as_deref().filter(|_| job.method == Method::Arf);
+    let styles = read_styles(case, registration, own_style, background, warnings)?;
+    let arf = &job.config.arf;
+    if job.method != Method::Arf || !(arf.colour_transfer || arf.post_transfer) {
+        return Ok((styles, None, None));
+    }
+    let which = arf.transfer_pixels;
+    let style = style_colour_stats(&styles[0], registration, own_style.is_some(), background, which)?;
+    if !arf.colour_transfer {
+        return Ok((styles, Some(style), None));
+    }
+    let tf = arf_colour_transfer(dataset, &style, background, which)?;
+    warnings.progress().info(format!("ARF colour transfer: photos recoloured with {:?} + {:?}", tf.matrix, tf.offset));
+    Ok((styles, Some(style), Some(tf)))
+}
