@@ -55,7 +55,15 @@ pub const MIN_SIDE: usize = 32;
 
 enum Network {
     Vgg(Box<Vgg16>),
-    Alex(AlexNet),
+    Alex(Box<AlexInput>),
+}
+
+/// AlexNet, and its input map `x * scale - shift` (`[1, 3, 1, 1]` each):
+/// [0, 1] to [-1, 1], then LPIPS's scaling layer, in one step.
+struct AlexInput {
+    net: AlexNet,
+    scale: Tensor<4>,
+    shift: Tensor<4>,
 }
 
 /// The LPIPS metric with one network's weights loaded.
@@ -77,7 +85,15 @@ impl Lpips {
     pub fn load(net: LpipsNet, device: &Device) -> Self {
         let network = match net {
             LpipsNet::Vgg => Network::Vgg(Box::new(Vgg16::lpips(device))),
-            LpipsNet::Alex => Network::Alex(AlexNet::load(device)),
+            LpipsNet::Alex => Network::Alex(Box::new(AlexInput {
+                net: AlexNet::load(device),
+                scale: floats(LPIPS_SCALE.map(|s| 2.0 / s).to_vec(), [1, 3, 1, 1], device),
+                shift: floats(
+                    LPIPS_SHIFT.iter().zip(LPIPS_SCALE).map(|(sh, sc)| (1.0 + sh) / sc).collect(),
+                    [1, 3, 1, 1],
+                    device,
+                ),
+            })),
         };
         let heads = (0..5)
             .map(|k| {
@@ -104,15 +120,7 @@ impl Lpips {
                 let mut maps = vgg.features(x, &VGG_LAYERS)?;
                 VGG_LAYERS.iter().map(|&l| maps.take(l)).collect::<Vec<_>>()
             }
-            Network::Alex(alex) => {
-                let a = floats(LPIPS_SCALE.map(|s| 2.0 / s).to_vec(), [1, 3, 1, 1], &self.device);
-                let b = floats(
-                    LPIPS_SHIFT.iter().zip(LPIPS_SCALE).map(|(sh, sc)| (1.0 + sh) / sc).collect(),
-                    [1, 3, 1, 1],
-                    &self.device,
-                );
-                alex.features(x * a - b)
-            }
+            Network::Alex(alex) => alex.net.features(x * alex.scale.clone() - alex.shift.clone()),
         };
         let maps = maps.into_iter().map(unit_normalised).collect();
         Ok(LpipsFeatures { maps, size: (image.width, image.height) })
