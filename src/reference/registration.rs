@@ -17,9 +17,8 @@ use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
 use crate::util::files;
 use crate::util::image::{self, Image};
-use crate::util::input::InputError;
 use crate::util::progress::{Progress, WarningLog};
-use crate::util::tensor_file::{self, ArrayRef, Arrays};
+use crate::util::tensor_file::{self, ArrayRef};
 
 pub const REGISTRATION_FILE: &str = "registration.bin";
 /// The file's `format` (a safetensors file: `util::tensor_file`).
@@ -183,27 +182,29 @@ impl RegistrationFile {
         let what = "a refnpr registration file (made by `refnpr register`)";
         let older = "run `refnpr register` again (a few seconds), or leave out --registration";
         let (meta, mut arrays): (FileMeta, _) = tensor_file::load(&file, FORMAT, what, (OLD_MAGIC, older))?;
-        let corrupt = |message: String| -> anyhow::Error {
-            InputError::Malformed { path: file.clone(), message: format!("{} is corrupt: {message}", file.display()) }
-                .into()
-        };
         let mut references = Vec::new();
         for (camera, [colours, hits]) in meta.references.into_iter().zip(reference_names(usize::MAX)) {
-            let colours = triples(&mut arrays, &colours).map_err(corrupt)?;
+            let colours = arrays.f32_triples(&colours)?;
             let hits: Vec<bool> = arrays.u32(&hits)?.into_iter().map(|h| h != 0).collect();
             if hits.len() != colours.len() {
-                return Err(corrupt(format!("a reference of {} colours and {} hit marks", colours.len(), hits.len())));
+                return Err(arrays.corrupt(format!(
+                    "a reference of {} colours and {} hit marks",
+                    colours.len(),
+                    hits.len()
+                )));
             }
             references.push(ReferencePixels { camera, colours, hits });
         }
         let mut views = Vec::new();
         for (view, [pixels, colours, sources]) in meta.views.into_iter().zip(view_names(usize::MAX)) {
             let pixels = arrays.u32(&pixels)?;
-            let colours = triples(&mut arrays, &colours).map_err(corrupt)?;
-            let reference: Vec<u16> =
-                arrays.u32(&sources)?.into_iter().map(|r| r.min(u16::MAX as u32) as u16).collect();
+            let colours = arrays.f32_triples(&colours)?;
+            let reference: Vec<u16> = match arrays.u32(&sources)?.into_iter().map(u16::try_from).collect() {
+                Ok(sources) => sources,
+                Err(_) => return Err(arrays.corrupt(format!("view {} names a reference past 65535", view.name))),
+            };
             if colours.len() != pixels.len() || reference.len() != pixels.len() {
-                return Err(corrupt(format!(
+                return Err(arrays.corrupt(format!(
                     "view {} has {} pixels, {} colours, {} sources",
                     view.name,
                     pixels.len(),
@@ -292,16 +293,6 @@ fn reference_names(n: usize) -> impl Iterator<Item = [String; 2]> {
 /// The array names of each training view: its pixels, their colours and sources.
 fn view_names(n: usize) -> impl Iterator<Item = [String; 3]> {
     (0..n).map(|i| [format!("view{i}.pixels"), format!("view{i}.colours"), format!("view{i}.reference")])
-}
-
-/// An F32 array of shape `[n, 3]` as `n` colours.
-fn triples(arrays: &mut Arrays, name: &str) -> std::result::Result<Vec<[f32; 3]>, String> {
-    let shape = arrays.shape(name).map_err(|e| format!("{e:#}"))?.to_vec();
-    if shape.len() != 2 || shape[1] != 3 {
-        return Err(format!("array {name} has shape {shape:?}, not [n, 3]"));
-    }
-    let values = arrays.f32(name).map_err(|e| format!("{e:#}"))?;
-    Ok(values.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
 }
 
 /// What `register.json` reports.

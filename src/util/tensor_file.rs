@@ -10,7 +10,7 @@ use std::collections::BTreeMap;
 use std::io::{self, Read, Seek, Write};
 use std::path::Path;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use serde::Serialize;
 use serde::de::DeserializeOwned;
 
@@ -31,6 +31,14 @@ impl ArrayRef<'_> {
             ArrayRef::U32(name, shape, _) => (name, DType::U32, shape.clone()),
         }
     }
+
+    /// How many values it holds.
+    fn len(&self) -> usize {
+        match self {
+            ArrayRef::F32(_, _, v) => v.len(),
+            ArrayRef::U32(_, _, v) => v.len(),
+        }
+    }
 }
 
 /// Writes `meta` (as JSON) and `arrays` to `path`, tagged `format`. Each
@@ -41,18 +49,20 @@ pub fn save<T: Serialize>(path: &Path, format: &str, meta: &T, arrays: &[ArrayRe
         ("meta".to_string(), serde_json::to_string(meta)?),
     ]);
     let tensors: Vec<_> = arrays.iter().map(ArrayRef::describe).collect();
+    for ((name, _, shape), array) in tensors.iter().zip(arrays) {
+        let len = array.len();
+        anyhow::ensure!(
+            len == shape.iter().product::<usize>(),
+            "writing {}: array {name} holds {len} values, not {shape:?}",
+            path.display()
+        );
+    }
     let (header, _) = safetensors::header(&tensors, &metadata);
     files::write_atomic(path, |w| {
         let io = |e| files::io_error(e, path);
         let mut scratch = Vec::new();
         w.write_all(&header).map_err(io)?;
         for array in arrays {
-            let (name, _, shape) = array.describe();
-            let (len, want) = match array {
-                ArrayRef::F32(_, _, v) => (v.len(), shape.iter().product::<usize>()),
-                ArrayRef::U32(_, _, v) => (v.len(), shape.iter().product::<usize>()),
-            };
-            anyhow::ensure!(len == want, "writing {}: array {name} holds {len} values, not {shape:?}", path.display());
             match array {
                 ArrayRef::F32(_, _, v) => safetensors::write_values(w, v, f32::to_le_bytes, &mut scratch),
                 ArrayRef::U32(_, _, v) => safetensors::write_values(w, v, u32::to_le_bytes, &mut scratch),
@@ -102,9 +112,23 @@ impl Arrays {
         }
     }
 
-    fn missing(&self, name: &str, what: &str) -> anyhow::Error {
-        let message = format!("{} is corrupt: it holds no {what} {name}", self.file.display());
+    /// Takes the F32 array `name` of shape `[n, 3]` out as `n` triples.
+    pub fn f32_triples(&mut self, name: &str) -> Result<Vec<[f32; 3]>> {
+        let shape = self.shape(name)?;
+        if shape.len() != 2 || shape[1] != 3 {
+            return Err(self.corrupt(format!("array {name} has shape {shape:?}, not [n, 3]")));
+        }
+        Ok(self.f32(name)?.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+    }
+
+    /// The error for a file whose content does not hold together: `message` says how.
+    pub fn corrupt(&self, message: String) -> anyhow::Error {
+        let message = format!("{} is corrupt: {message}", self.file.display());
         InputError::Malformed { path: self.file.clone(), message }.into()
+    }
+
+    fn missing(&self, name: &str, what: &str) -> anyhow::Error {
+        self.corrupt(format!("it holds no {what} {name}"))
     }
 }
 
@@ -119,10 +143,11 @@ pub fn load<T: DeserializeOwned>(path: &Path, format: &str, what: &str, old: (&[
         return Err(InputError::Missing { path: path.into(), message }.into());
     }
     let malformed = |message: String| InputError::Malformed { path: path.into(), message };
-    let mut file = std::fs::File::open(path).map_err(|e| files::io_error(e, path))?;
+    let cannot_read = || format!("cannot read {}", path.display());
+    let mut file = std::fs::File::open(path).with_context(cannot_read)?;
     let len = file.metadata().map(|m| m.len()).unwrap_or(0);
     let mut start = [0u8; 9];
-    let read = read_start(&mut file, &mut start).map_err(|e| files::io_error(e, path))?;
+    let read = read_start(&mut file, &mut start).with_context(cannot_read)?;
     if read >= 8 && &start[..8] == old_magic {
         let message =
             format!("{} was written by an older refnpr, in a layout this one no longer reads: {older}", path.display());
@@ -133,7 +158,7 @@ pub fn load<T: DeserializeOwned>(path: &Path, format: &str, what: &str, old: (&[
     if !safetensors::looks_like(&start[..read], len) {
         return Err(wrong_kind().into());
     }
-    file.seek(io::SeekFrom::Start(0)).map_err(|e| files::io_error(e, path))?;
+    file.seek(io::SeekFrom::Start(0)).with_context(cannot_read)?;
     let mut r = io::BufReader::new(file);
     let header =
         safetensors::read_header(&mut r, len).map_err(|e| malformed(format!("{} is corrupt: {e}", path.display())))?;
