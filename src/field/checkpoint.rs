@@ -310,10 +310,11 @@ fn read_file(path: &Path, optimiser_state: bool) -> Result<Payload> {
         path: path.to_path_buf(),
         message: format!("{} is corrupt: {e}", path.display()),
     };
-    let mut file = std::fs::File::open(path).map_err(|e| files::io_error(e, path))?;
+    let cannot_read = || format!("cannot read {}", path.display());
+    let mut file = std::fs::File::open(path).with_context(cannot_read)?;
     let len = file.metadata().map(|m| m.len()).unwrap_or(0);
     let mut start = [0u8; 9];
-    let read = file.read(&mut start).map_err(|e| files::io_error(e, path))?;
+    let read = file.read(&mut start).with_context(cannot_read)?;
     if read >= 8 && &start[..8] == MAGIC {
         let (file, len) = files::open_tagged(path, MAGIC, "a refnpr checkpoint")?;
         return Ok(read_legacy(bin_fields::FieldReader::new(file, len), optimiser_state).map_err(corrupt)?);
@@ -322,7 +323,7 @@ fn read_file(path: &Path, optimiser_state: bool) -> Result<Payload> {
         let message = format!("{} is not a refnpr checkpoint", path.display());
         return Err(InputError::WrongKind { path: path.to_path_buf(), message }.into());
     }
-    file.seek(io::SeekFrom::Start(0)).map_err(|e| files::io_error(e, path))?;
+    file.seek(io::SeekFrom::Start(0)).with_context(cannot_read)?;
     let mut r = io::BufReader::new(file);
     read_safetensors(&mut r, len, optimiser_state).map_err(corrupt).map_err(Into::into)
 }
