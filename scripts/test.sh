@@ -32,6 +32,8 @@ command -v cargo-deny >/dev/null 2>&1 || {
   exit 1
 }
 cargo deny --log-level error check licenses bans sources
+stage "features: the test build and the plain build (binary, notebooks) compile each dependency once"
+python3 scripts/check_features.py
 # Lints: clippy is the compiler of our own crate in every build below (what
 # `cargo clippy` itself does: cargo's RUSTC_WORKSPACE_WRAPPER), so the
 # tests' build is the lint pass too, over every target and backend, without

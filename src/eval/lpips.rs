@@ -97,7 +97,7 @@ impl Lpips {
         };
         let heads = (0..5)
             .map(|k| {
-                let head: Tensor<1> = weights::tensor(&format!("{}.lin{k}", net.key()), device);
+                let head: Tensor<1> = weights::LPIPS.tensor(&format!("{}.lin{k}", net.key()), device);
                 let c = head.dims()[0];
                 head.reshape([1, c, 1, 1])
             })

@@ -30,8 +30,8 @@ impl AlexNet {
         let convs = (1..=5)
             .map(|i| {
                 (
-                    weights::tensor(&format!("alex.conv{i}.weight"), device),
-                    weights::tensor(&format!("alex.conv{i}.bias"), device),
+                    weights::LPIPS.tensor(&format!("alex.conv{i}.weight"), device),
+                    weights::LPIPS.tensor(&format!("alex.conv{i}.bias"), device),
                 )
             })
             .collect();

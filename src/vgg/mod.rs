@@ -1,9 +1,11 @@
 //! VGG16 feature extractor: a thin wrapper over the model burn-onnx generates
-//! from `models/vgg16_features.onnx` at build time (see build.rs, models/README.md).
+//! from `models/vgg16_features.onnx` (committed as `models/vgg16_features.rs`,
+//! checked by tests/onnx_import.rs; see models/README.md).
 //!
-//! Two sets of ImageNet weights ([`VggWeights`]): Oxford's original release
-//! (the ONNX file's, the default) and torchvision's (`vgg::weights`, the
-//! network the authors' losses and LPIPS use), loaded into the same graph.
+//! Two sets of ImageNet weights ([`VggWeights`], both in `vgg::weights`):
+//! Oxford's original release (the ONNX file's initializers, the default) and
+//! torchvision's (the network the authors' losses and LPIPS use), loaded into
+//! the same graph.
 //!
 //! Input: a batch of RGB images `[N, 3, H, W]` with values in [0, 1]. Each
 //! set's input normalisation happens inside the model (Oxford: x*255 minus
@@ -250,9 +252,10 @@ impl Vgg16 {
     /// The ImageNet weights embedded at build time, on `device`. The weights
     /// never require gradients (gradients flow to the input image only).
     pub fn load(device: &Device) -> Self {
-        let model = Model::from_embedded(device).no_grad();
-        crate::util::transfer::record_upload(model.num_params() * 4);
-        Self { model, forward: VggForward::default(), prepared: Arc::default() }
+        let convs = conv_weights(&weights::OXFORD, "", device);
+        let scale = weights::OXFORD.tensor("scale", device);
+        let mean = weights::OXFORD.tensor("mean", device);
+        Self::with_model(Model::new(device).with_weights(convs, scale, mean))
     }
 
     /// The ImageNet weights `weights` names, on `device`.
@@ -275,28 +278,25 @@ impl Vgg16 {
     /// zero padding included: a padded zero of `(x - mean) / std` is a
     /// padded zero of `x - mean`.
     fn torchvision(device: &Device, mean: [f32; 3], std: [f32; 3]) -> Self {
-        let mut convs: Vec<(Tensor<4>, Tensor<1>)> = (1..=13)
-            .map(|i| {
-                (
-                    weights::tensor(&format!("vgg.conv{i}.weight"), device),
-                    weights::tensor(&format!("vgg.conv{i}.bias"), device),
-                )
-            })
-            .collect();
+        let mut convs = conv_weights(&weights::LPIPS, "vgg.", device);
         let inv_std = crate::util::tensor::floats(std.map(|s| 1.0 / s).to_vec(), [1, 3, 1, 1], device);
         convs[0].0 = convs[0].0.clone() * inv_std;
         let scale = crate::util::tensor::floats(vec![1.0], [1], device);
         let mean = crate::util::tensor::floats(mean.to_vec(), [1, 3, 1, 1], device);
-        // (The weights' upload is counted by `floats`.)
-        let model = Model::new(device).with_weights(convs, scale, mean).no_grad();
-        Self { model, forward: VggForward::default(), prepared: Arc::default() }
+        Self::with_model(Model::new(device).with_weights(convs, scale, mean))
+    }
+
+    /// `model`, frozen, with the default forward pass. (The weights' upload
+    /// was counted by `floats`.)
+    fn with_model(model: Model) -> Self {
+        Self { model: model.no_grad(), forward: VggForward::default(), prepared: Arc::default() }
     }
 
     /// The same architecture with Burn's default random initialisation under
     /// `seed`: the control for tests that must prove the real weights matter.
     pub fn random(device: &Device, seed: u64) -> Self {
         device.seed(seed);
-        Self { model: Model::new(device).no_grad(), forward: VggForward::default(), prepared: Arc::default() }
+        Self::with_model(Model::new(device))
     }
 
     /// The same weights, the forward pass run as `forward` says.
@@ -362,4 +362,17 @@ impl Vgg16 {
         }
         Ok(FeatureMaps { maps })
     }
+}
+
+/// VGG16's 13 convolutions (weight, bias) in network order, from the arrays
+/// `{prefix}conv{i}.weight` and `{prefix}conv{i}.bias` of `file`.
+fn conv_weights(file: &weights::EmbeddedWeights, prefix: &str, device: &Device) -> Vec<(Tensor<4>, Tensor<1>)> {
+    (1..=13)
+        .map(|i| {
+            (
+                file.tensor(&format!("{prefix}conv{i}.weight"), device),
+                file.tensor(&format!("{prefix}conv{i}.bias"), device),
+            )
+        })
+        .collect()
 }

@@ -1,7 +1,10 @@
-//! The burn-onnx generated VGG16 feature stack (see build.rs and models/).
+//! The VGG16 feature stack burn-onnx generates from
+//! `models/vgg16_features.onnx` (`LoadStrategy::None`: the weights come from
+//! `vgg::weights`), committed as `models/vgg16_features.rs`;
+//! tests/onnx_import.rs regenerates it and compares.
 // Generated code: no lint of ours applies (too_many_lines is a pedantic lint, outside clippy::all).
 #![allow(clippy::all, clippy::pedantic, unused)]
-include!(concat!(env!("OUT_DIR"), "/model/vgg16_features.rs"));
+include!(concat!(env!("CARGO_MANIFEST_DIR"), "/models/vgg16_features.rs"));
 
 /// The imported graph's pieces, in network order, for a forward pass that
 /// runs the same modules layer by layer (`crate::vgg::staged`).
