@@ -8,7 +8,7 @@
 //! sidecar the script wrote is refused. The model's Burn source is
 //! burn-onnx's output for the ONNX file, committed as
 //! `models/vgg16_features.rs`: burn-onnx is a dev-dependency, run by
-//! tests/onnx_import.rs, which regenerates that source and compares it (and
+//! tests/vgg.rs (model_is_burn_onnx_import_of_the_onnx_file), which regenerates that source and compares it (and
 //! the weights) with the committed one. Running it here instead compiled a
 //! second Burn stack for the build host on every cold build.
 //!

@@ -17,7 +17,7 @@ It then writes models/vgg16_oxford.safetensors: the ONNX file's initializers
 (`scale`, `mean`, `conv{1..13}.weight`, `conv{1..13}.bias`, float32, read back
 from the written file), the weights the library embeds. The Burn model itself
 is burn-onnx's output for the ONNX file, committed as models/vgg16_features.rs
-(tests/onnx_import.rs regenerates it and compares, and compares these arrays
+(tests/vgg.rs (model_is_burn_onnx_import_of_the_onnx_file) regenerates it and compares, and compares these arrays
 with burn-onnx's own import of the file). torchvision's VGG16 is the other
 backbone (`[vgg] weights = "torchvision"`, from models/lpips_weights.safetensors).
 

@@ -27,14 +27,7 @@ pub struct AlexNet {
 impl AlexNet {
     /// torchvision's ImageNet weights (embedded), on `device`.
     pub fn load(device: &Device) -> Self {
-        let convs = (1..=5)
-            .map(|i| {
-                (
-                    weights::LPIPS.tensor(&format!("alex.conv{i}.weight"), device),
-                    weights::LPIPS.tensor(&format!("alex.conv{i}.bias"), device),
-                )
-            })
-            .collect();
+        let convs = weights::LPIPS.convs("alex.", 5, device);
         Self { convs }
     }
 

@@ -1,6 +1,6 @@
 //! VGG16 feature extractor: a thin wrapper over the model burn-onnx generates
 //! from `models/vgg16_features.onnx` (committed as `models/vgg16_features.rs`,
-//! checked by tests/onnx_import.rs; see models/README.md).
+//! checked by tests/vgg.rs (model_is_burn_onnx_import_of_the_onnx_file); see models/README.md).
 //!
 //! Two sets of ImageNet weights ([`VggWeights`], both in `vgg::weights`):
 //! Oxford's original release (the ONNX file's initializers, the default) and
@@ -252,7 +252,7 @@ impl Vgg16 {
     /// The ImageNet weights embedded at build time, on `device`. The weights
     /// never require gradients (gradients flow to the input image only).
     pub fn load(device: &Device) -> Self {
-        let convs = conv_weights(&weights::OXFORD, "", device);
+        let convs = weights::OXFORD.convs("", 13, device);
         let scale = weights::OXFORD.tensor("scale", device);
         let mean = weights::OXFORD.tensor("mean", device);
         Self::with_model(Model::new(device).with_weights(convs, scale, mean))
@@ -278,7 +278,7 @@ impl Vgg16 {
     /// zero padding included: a padded zero of `(x - mean) / std` is a
     /// padded zero of `x - mean`.
     fn torchvision(device: &Device, mean: [f32; 3], std: [f32; 3]) -> Self {
-        let mut convs = conv_weights(&weights::LPIPS, "vgg.", device);
+        let mut convs = weights::LPIPS.convs("vgg.", 13, device);
         let inv_std = crate::util::tensor::floats(std.map(|s| 1.0 / s).to_vec(), [1, 3, 1, 1], device);
         convs[0].0 = convs[0].0.clone() * inv_std;
         let scale = crate::util::tensor::floats(vec![1.0], [1], device);
@@ -362,17 +362,4 @@ impl Vgg16 {
         }
         Ok(FeatureMaps { maps })
     }
-}
-
-/// VGG16's 13 convolutions (weight, bias) in network order, from the arrays
-/// `{prefix}conv{i}.weight` and `{prefix}conv{i}.bias` of `file`.
-fn conv_weights(file: &weights::EmbeddedWeights, prefix: &str, device: &Device) -> Vec<(Tensor<4>, Tensor<1>)> {
-    (1..=13)
-        .map(|i| {
-            (
-                file.tensor(&format!("{prefix}conv{i}.weight"), device),
-                file.tensor(&format!("{prefix}conv{i}.bias"), device),
-            )
-        })
-        .collect()
 }

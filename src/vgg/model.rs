@@ -1,7 +1,7 @@
 //! The VGG16 feature stack burn-onnx generates from
 //! `models/vgg16_features.onnx` (`LoadStrategy::None`: the weights come from
 //! `vgg::weights`), committed as `models/vgg16_features.rs`;
-//! tests/onnx_import.rs regenerates it and compares.
+//! tests/vgg.rs (model_is_burn_onnx_import_of_the_onnx_file) regenerates it and compares.
 // Generated code: no lint of ours applies (too_many_lines is a pedantic lint, outside clippy::all).
 #![allow(clippy::all, clippy::pedantic, unused)]
 include!(concat!(env!("CARGO_MANIFEST_DIR"), "/models/vgg16_features.rs"));

@@ -70,6 +70,19 @@ impl EmbeddedWeights {
         floats(values, shape, device)
     }
 
+    /// The first `count` convolutions (weight, bias) in network order, from
+    /// the arrays `{prefix}conv{i}.weight` and `{prefix}conv{i}.bias`.
+    pub fn convs(&self, prefix: &str, count: usize, device: &Device) -> Vec<(Tensor<4>, Tensor<1>)> {
+        (1..=count)
+            .map(|i| {
+                (
+                    self.tensor(&format!("{prefix}conv{i}.weight"), device),
+                    self.tensor(&format!("{prefix}conv{i}.bias"), device),
+                )
+            })
+            .collect()
+    }
+
     /// The names of the file's arrays, in the file's order.
     pub fn names(&self) -> Vec<String> {
         let mut entries: Vec<_> = self.header().entries.iter().collect();
