@@ -762,7 +762,7 @@ fn a_recolouring_reaches_the_unseen_side_through_the_colour_map() {
     let t = TempDir::new("colour-map");
     let photo = tiny_photo_run(t.path(), 400, 16);
     let graded = t.path().join("graded");
-    paint::recolour_dataset(&t.path().join("scene"), &graded, paint::Grade::Hue).unwrap();
+    paint::recolour_dataset(&t.path().join("scene"), &graded, paint::Grade::Hue, None).unwrap();
     let case = t.path().join("case");
     std::fs::create_dir_all(&case).unwrap();
     std::fs::copy(graded.join("train/r_0.png"), case.join("style.png")).unwrap();
@@ -823,6 +823,90 @@ fn a_far_background_is_stylized_with_the_scene() {
     assert!(after >= before + 1.0, "stylized {after:.2} dB vs photoreal {before:.2} dB");
     assert!(moved > 0.05, "the far map kept the photo's colours (moved {moved:.3})");
     assert_eq!(to_vec(a.grid.density.clone()), to_vec(b.grid.density.clone()), "density changed");
+}
+
+/// A local edit (`region = "difference"`): training view 0 with only the
+/// sphere's pixels graded. The sphere's test-view pixels move towards the
+/// scene with only the sphere graded (its far side included), every other
+/// object's pixels stay what the photoreal field renders (most of them bit
+/// for bit: only rays that cross an edited voxel can change), and the
+/// density is the photo's. Bad regions are refused before anything is
+/// written: a mask of the wrong size, an empty difference, a mask that
+/// covers only background.
+#[test]
+fn tiny_scene_painted_on_one_object_changes_only_that_object() {
+    let t = TempDir::new("local-edit");
+    let photo = tiny_photo_run(t.path(), 400, 16);
+    let scene = t.path().join("scene");
+    let ds = data::load(&scene, &Default::default()).unwrap();
+    let d = common::device();
+    let photo_ck = checkpoint::load_with(&photo, &d, false).unwrap();
+    let content = photo_ck.render_view(&ds.train[0].camera).image;
+    let (w, h) = (content.width, content.height);
+    let sphere = [procedural::ID_SPHERE];
+    let mask = paint::object_mask(&scene.join("train/r_0_id.png"), &sphere, w as u32, h as u32).unwrap();
+    let style = paint::only_where(&content.rgb, &paint::Grade::Hue.image(&content.rgb), &mask);
+    let case = t.path().join("case");
+    std::fs::create_dir_all(&case).unwrap();
+    Image::new(w, h, style.clone()).save_png(&case.join("style.png")).unwrap();
+    let toml = |region: &str| format!("[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\nregion = \"{region}\"\n");
+    std::fs::write(case.join("reference.toml"), toml("difference")).unwrap();
+    let out = t.path().join("style");
+    let report = run_stylize(&job(&photo, &case, &out, quick_config(2), Method::RefNpr), &refnpr::Quiet).unwrap();
+    let edit = report.local_edit.expect("a local edit's report");
+    eprintln!("local edit: {edit:?}");
+    assert!(edit.seen_voxels > 0 && edit.matched_voxels > 0, "{edit:?}");
+    assert!(edit.seen_voxels + edit.matched_voxels < edit.voxels / 4, "{edit:?}");
+    assert!(out.join("region_0.png").exists());
+
+    let graded = t.path().join("graded");
+    paint::recolour_dataset(&scene, &graded, paint::Grade::Hue, Some(&sphere)).unwrap();
+    let twin = data::load(&graded, &Default::default()).unwrap();
+    let style_ck = checkpoint::load_with(&out, &d, false).unwrap();
+    assert_eq!(to_vec(photo_ck.grid.density.clone()), to_vec(style_ck.grid.density.clone()), "density changed");
+    let (mut sphere_err, mut photo_err, mut other_err) = ((0.0f64, 0usize), (0.0f64, 0usize), (0.0f64, 0usize));
+    let (mut same, mut others) = (0, 0);
+    for (i, v) in twin.test.iter().enumerate() {
+        let ids = paint::object_mask(&scene.join(format!("test/r_{i}_id.png")), &sphere, w as u32, h as u32).unwrap();
+        let background = paint::object_mask(&scene.join(format!("test/r_{i}_id.png")), &[0], w as u32, h as u32).unwrap();
+        let (stylized, photoreal) = (style_ck.render_view(&v.camera).image, photo_ck.render_view(&v.camera).image);
+        for p in 0..w * h {
+            let sq = |a: &[f32], b: &[f32]| (0..3).map(|c| f64::from(a[p * 3 + c] - b[p * 3 + c]).powi(2)).sum::<f64>();
+            if ids[p] {
+                sphere_err = (sphere_err.0 + sq(&stylized.rgb, &v.rgb), sphere_err.1 + 3);
+                photo_err = (photo_err.0 + sq(&photoreal.rgb, &v.rgb), photo_err.1 + 3);
+            } else if !background[p] {
+                other_err = (other_err.0 + sq(&stylized.rgb, &photoreal.rgb), other_err.1 + 3);
+                others += 1;
+                same += usize::from((0..3).all(|c| stylized.rgb[p * 3 + c] == photoreal.rgb[p * 3 + c]));
+            }
+        }
+    }
+    let psnr = |(sum, n): (f64, usize)| -10.0 * (sum / n.max(1) as f64).max(1e-10).log10();
+    let (edited, before, kept) = (psnr(sphere_err), psnr(photo_err), psnr(other_err));
+    eprintln!(
+        "sphere vs its graded twin: {before:.2} dB photoreal, {edited:.2} dB edited; other objects vs photoreal: \
+         {kept:.2} dB, {same} of {others} pixels bit for bit"
+    );
+    assert!(edited >= before + 3.0, "the sphere: edited {edited:.2} dB vs photoreal {before:.2} dB");
+    assert!(kept >= 30.0, "the other objects moved: {kept:.2} dB from the photoreal renders");
+    assert!(same * 10 >= others * 7, "only {same} of {others} other pixels are the photo's, bit for bit");
+
+    // Bad regions: each refused, naming the file, with nothing written.
+    let refused = |region: &str, what: &[&str]| {
+        std::fs::write(case.join("reference.toml"), toml(region)).unwrap();
+        let out = t.path().join("refused");
+        let err = run_stylize(&job(&photo, &case, &out, quick_config(1), Method::RefNpr), &refnpr::Quiet).unwrap_err();
+        assert!(what.iter().all(|w| format!("{err:#}").contains(w)), "{region}: {err:#}");
+        assert!(!out.exists(), "{region}: wrote {}", out.display());
+    };
+    image::GrayImage::from_pixel(w as u32 + 1, h as u32, image::Luma([255])).save(case.join("big.png")).unwrap();
+    refused("big.png", &["big.png", "the mask must be the view's size"]);
+    let corner = image::GrayImage::from_fn(w as u32, h as u32, |x, y| image::Luma([if x < 2 && y < 2 { 255 } else { 0 }]));
+    corner.save(case.join("corner.png")).unwrap();
+    refused("corner.png", &["corner.png", "cover no surface"]);
+    content.save_png(&case.join("style.png")).unwrap();
+    refused("difference", &["style.png", "the region is empty"]);
 }
 
 /// `refnpr stylize --registration DIR` reads what `refnpr register` wrote

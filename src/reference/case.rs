@@ -9,11 +9,20 @@
 //! [[reference]]
 //! style = "style.png"
 //! view = "train:3"            # train:N | test:N | path:N
+//! region = "difference"     # optional: a local edit (below)
 //! [[reference]]
 //! style = "style2.png"
 //! c2w = [[1,0,0,0],[0,1,0,0],[0,0,1,4],[0,0,0,1]]   # row-major camera-to-world (OpenGL)
 //! intrinsics = { width = 200, height = 200, fx = 280.0, fy = 280.0, cx = 100.0, cy = 100.0 }
 //! ```
+//!
+//! A reference with `region` is a local edit: only the surfaces its
+//! painting changes are stylized, and everything else keeps the photoreal
+//! field (`stylize::region`). `region = "difference"` takes the pixels where
+//! the style image differs from the photoreal render by more than
+//! `region_threshold` (a top-level key, default 0.1 of the colour range, in
+//! any channel); `region = "mask.png"` names a mask image of the view's
+//! size (white = edited).
 //!
 //! or the authors' `data_config.json`, unchanged: `style_img` (a string or a
 //! list), exactly one of `tmpl_idx_train` / `tmpl_idx_test` non-null (an index
@@ -140,11 +149,26 @@ impl ViewSpec {
     }
 }
 
-/// One reference: its style image and camera.
+/// Which pixels of a reference a local edit paints (`region` in `reference.toml`).
+#[derive(Debug, Clone, PartialEq)]
+pub enum RegionSpec {
+    /// Where the style image differs from the photoreal render (`region = "difference"`).
+    Difference,
+    /// A mask image, white where edited (`region = "mask.png"`).
+    Mask(PathBuf),
+}
+
+/// The `region` value that asks for the difference to the photoreal render.
+pub const REGION_DIFFERENCE: &str = "difference";
+/// `region_threshold`'s default: a tenth of the colour range in some channel.
+pub const DEFAULT_REGION_THRESHOLD: f32 = 0.1;
+
+/// One reference: its style image and camera, and its region when it is a local edit.
 #[derive(Debug, Clone)]
 pub struct ReferenceSpec {
     pub style: PathBuf,
     pub view: ViewSpec,
+    pub region: Option<RegionSpec>,
 }
 
 /// A parsed reference case.
@@ -158,6 +182,8 @@ pub struct ReferenceCase {
     pub path_frames: usize,
     /// The scene the case was made for, when it says (checked against the dataset folder's name).
     pub scene_name: Option<String>,
+    /// The least per-channel difference to the photoreal render that counts as painted (`region = "difference"`).
+    pub region_threshold: f32,
 }
 
 #[derive(Deserialize)]
@@ -169,6 +195,8 @@ struct CaseToml {
     #[serde(default = "default_frames")]
     path_frames: usize,
     scene_name: Option<String>,
+    #[serde(default = "default_threshold")]
+    region_threshold: f32,
     reference: Vec<RefToml>,
 }
 
@@ -179,6 +207,11 @@ struct RefToml {
     view: Option<String>,
     c2w: Option<[[f32; 4]; 4]>,
     intrinsics: Option<Intrinsics>,
+    region: Option<String>,
+}
+
+fn default_threshold() -> f32 {
+    DEFAULT_REGION_THRESHOLD
 }
 
 fn yes() -> bool {
@@ -245,6 +278,9 @@ impl ReferenceCase {
         };
         for r in &case.references {
             ensure!(r.style.exists(), "style image {} does not exist", r.style.display());
+            if let Some(RegionSpec::Mask(mask)) = &r.region {
+                ensure!(mask.exists(), "region mask {} does not exist", mask.display());
+            }
         }
         Ok(case)
     }
@@ -256,6 +292,11 @@ impl ReferenceCase {
             (1..=MAX_PATH_FRAMES).contains(&t.path_frames),
             "path_frames must be between 1 and {MAX_PATH_FRAMES}, got {}",
             t.path_frames
+        );
+        ensure!(
+            t.region_threshold > 0.0 && t.region_threshold < 1.0,
+            "region_threshold must be between 0 and 1 (a fraction of the colour range), got {}",
+            t.region_threshold
         );
         let mut references = Vec::new();
         for (i, r) in t.reference.into_iter().enumerate() {
@@ -272,7 +313,11 @@ impl ReferenceCase {
                 }
                 _ => bail!("reference {i}: give either `view` or both `c2w` and `intrinsics`"),
             };
-            references.push(ReferenceSpec { style: dir.join(r.style), view });
+            let region = r.region.map(|name| match name.as_str() {
+                REGION_DIFFERENCE => RegionSpec::Difference,
+                _ => RegionSpec::Mask(dir.join(name)),
+            });
+            references.push(ReferenceSpec { style: dir.join(r.style), view, region });
         }
         Ok(Self {
             dir: dir.to_path_buf(),
@@ -281,6 +326,7 @@ impl ReferenceCase {
             style_name: t.style_name,
             path_frames: t.path_frames,
             scene_name: t.scene_name,
+            region_threshold: t.region_threshold,
         })
     }
 
@@ -304,7 +350,11 @@ impl ReferenceCase {
         let references = styles
             .iter()
             .enumerate()
-            .map(|(i, s)| ReferenceSpec { style: resolve_style(dir, s), view: views[i.min(views.len() - 1)].clone() })
+            .map(|(i, s)| ReferenceSpec {
+                style: resolve_style(dir, s),
+                view: views[i.min(views.len() - 1)].clone(),
+                region: None,
+            })
             .collect();
         Ok(Self {
             dir: dir.to_path_buf(),
@@ -313,6 +363,7 @@ impl ReferenceCase {
             style_name: j.style_name,
             path_frames: DEFAULT_PATH_FRAMES,
             scene_name: j.scene_name,
+            region_threshold: DEFAULT_REGION_THRESHOLD,
         })
     }
 
@@ -323,6 +374,11 @@ impl ReferenceCase {
         (want != have).then(|| {
             format!("the reference case says scene_name = {want:?} but the photoreal run's dataset folder is {have:?}")
         })
+    }
+
+    /// Whether any reference is a local edit.
+    pub fn is_local(&self) -> bool {
+        self.references.iter().any(|r| r.region.is_some())
     }
 
     /// The reference cameras in `dataset`.

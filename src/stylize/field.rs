@@ -94,6 +94,14 @@ impl StepRows {
         }
     }
 
+    /// The grid row of each buffer row, in buffer order.
+    pub fn grid_rows(&self) -> Box<dyn Iterator<Item = usize> + '_> {
+        match &self.touched {
+            None => Box::new(0..self.num_rows),
+            Some(s) => Box::new(s.rows().iter().map(|&r| r as usize)),
+        }
+    }
+
     /// An empty gradient buffer.
     pub fn zeros(&self, device: &burn::tensor::Device) -> Tensor<2> {
         Tensor::zeros([self.len(), 3], device)
@@ -147,14 +155,19 @@ impl StyleField {
             self.grid.sh.clone().matmul(floats(transposed, [3, 3], &device)) + floats(shift, [1, 3], &device);
     }
 
-    /// Recolours every voxel's degree-0 colour `c = C0 s + 0.5` through
-    /// `map` (before the renderer's clamp, as `apply_colour_transfer`).
-    pub fn apply_colour_map(&mut self, map: &ColourMap) {
+    /// Recolours the degree-0 colour `c = C0 s + 0.5` of every voxel (of
+    /// those `only` marks, when given) through `map` (before the
+    /// renderer's clamp, as `apply_colour_transfer`).
+    pub fn apply_colour_map(&mut self, map: &ColourMap, only: Option<&[bool]>) {
         let device = self.grid.device();
         let sh = to_vec(self.grid.sh.clone());
         let mapped: Vec<f32> = sh
             .chunks_exact(3)
-            .flat_map(|s| map.apply([0, 1, 2].map(|k| sh::C0 * s[k] + 0.5)).map(|c| (c - 0.5) / sh::C0))
+            .enumerate()
+            .flat_map(|(row, s)| match only.is_none_or(|o| o[row]) {
+                true => map.apply([0, 1, 2].map(|k| sh::C0 * s[k] + 0.5)).map(|c| (c - 0.5) / sh::C0),
+                false => [s[0], s[1], s[2]],
+            })
             .collect();
         self.grid.sh = floats(mapped, [sh.len() / 3, 3], &device);
     }

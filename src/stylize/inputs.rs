@@ -13,6 +13,7 @@ use crate::reference::case::ReferenceCase;
 use crate::reference::registration::{PhotoRun, RegistrationFile, lift_references, register_case};
 use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
+use crate::stylize::region::{PixelRegion, reference_regions};
 use crate::stylize::styles::{arf_colour_transfer, read_styles, style_colour_stats};
 use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
 use crate::stylize::{Method, StylizeJob};
@@ -29,6 +30,8 @@ pub(crate) struct Inputs {
     pub case: ReferenceCase,
     /// The training views' size `[width, height]`.
     pub image_size: [usize; 2],
+    /// A local edit's painted pixels per reference (`stylize::region`).
+    pub regions: Option<Vec<PixelRegion>>,
 }
 
 impl Inputs {
@@ -55,7 +58,13 @@ impl Inputs {
             );
         }
         let image_size = preflight(job, &ck, &dataset)?;
-        Ok(Inputs { ck, dataset, case, image_size })
+        // A local edit's regions, against the render the painting was made
+        // over: the photoreal field with its view-dependent bands.
+        let regions = match case.is_local() {
+            true => reference_regions(&case, &checkpoint::load_with(&job.photo, &device, false)?, &dataset)?,
+            false => None,
+        };
+        Ok(Inputs { ck, dataset, case, image_size, regions })
     }
 }
 

@@ -27,8 +27,9 @@
 //! field, its optimiser and chunked gradients), `samples` (the rays the
 //! losses draw from and their frozen sample lists), `step` (one image step,
 //! one refit step), `guides` (content renders, TCM matches, colour targets),
-//! `run` (`refnpr stylize` from files to files: the loops, resume points
-//! and phase costs).
+//! `outputs` (the checkpoint and renders a run ends with), `region` (local edits: the painted pixels, the voxels they make, the
+//! photoreal field kept elsewhere), `run` (`refnpr stylize` from files to
+//! files: the loops, resume points and phase costs).
 
 pub mod colour_map;
 pub mod colour_transfer;
@@ -38,7 +39,9 @@ pub mod field;
 pub(crate) mod guides;
 pub(crate) mod inputs;
 pub mod losses;
+pub(crate) mod outputs;
 pub(crate) mod recolouring;
+pub mod region;
 pub mod resume;
 pub mod run;
 pub(crate) mod samples;
@@ -171,6 +174,16 @@ pub struct ColourMapReport {
     pub recolouring: bool,
 }
 
+/// A local edit's extent: painted pixels per reference, edited voxels.
+#[derive(Debug, Clone, Serialize)]
+pub struct LocalEditReport {
+    pub painted_pixels: Vec<usize>,
+    /// Edited voxels a reference sees, and those TCM gave the edit.
+    pub seen_voxels: usize,
+    pub matched_voxels: usize,
+    pub voxels: usize,
+}
+
 /// `STYLE_RUN/stylize.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct StylizeReport {
@@ -208,6 +221,8 @@ pub struct StylizeReport {
     pub memory: BTreeMap<String, crate::util::memory::MemoryNow>,
     /// What the sample cache (`sample_cache_mb`) holds.
     pub sample_cache: SampleCacheReport,
+    /// A local edit (`stylize::region`): the voxels it changed.
+    pub local_edit: Option<LocalEditReport>,
     pub final_losses: Option<CurvePoint>,
     pub curve: Vec<CurvePoint>,
     pub warnings: Vec<String>,

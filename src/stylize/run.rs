@@ -21,12 +21,14 @@ use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::config::StylizeConfig;
 use crate::stylize::guides::{self, ColourSource, Content};
+use crate::stylize::outputs::{render_test_views, save_outputs};
 use crate::stylize::inputs::{Inputs, keeps_content, registration, style_side};
 use crate::stylize::recolouring::{FittedMap, explained_on_content, fit_colour_map, with_recolouring_schedule};
 use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::step::{Guidance, StyleStep};
 use crate::stylize::styles::is_background;
-use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob, StylizeReport};
+use crate::stylize::region::PixelRegion;
+use crate::stylize::{CurvePoint, LocalEditReport, Method, StepKind, StylizeJob, StylizeReport};
 use crate::util::costs::Work;
 use crate::util::diverged;
 use crate::util::files;
@@ -43,7 +45,7 @@ use crate::util::transfer::{self, PhaseLog, PhaseTransfers, Transfers};
 /// `refnpr stylize`.
 pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeReport> {
     let started = Instant::now();
-    let Inputs { ck, dataset, case, image_size } = Inputs::load(job, progress)?;
+    let Inputs { ck, dataset, case, image_size, regions } = Inputs::load(job, progress)?;
     let explained_on_content = explained_on_content(job, &case, &dataset, ck.meta.background);
     let job = &with_recolouring_schedule(job, explained_on_content);
     let _lock = OutputLock::acquire(&job.out)?;
@@ -72,12 +74,13 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let mut st =
         Stylization::new(job, StyleStep::new(job, &dataset, ck.grid, &photo_meta, registration), colour_transfer);
     let start = st.refit_or_resume(resumed.as_ref(), &mut phases, progress)?;
-    if job.method == Method::RefNpr {
+    if job.method == Method::RefNpr && regions.is_none() {
         st.step.stylize_far(progress);
     }
     let colour = job.method == Method::RefNpr && job.config.ablation.use_colour_loss && case.color_pre;
     st.colour_map = fit_colour_map(job, &st.step, &styles, explained_on_content, progress);
     let (guidance, colour_matched) = st.content_phase(&styles, colour, image_size, &mut phases, progress)?;
+    let local_edit = regions.as_deref().map(|r| st.local_edit(r, &guidance, progress)).transpose()?;
     st.recolour_field();
     let sample_cache = st.step.samples.report(job.config.sample_cache_mb);
     if let Some(state) = resumed {
@@ -85,7 +88,8 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     }
     st.image_epochs(&styles, guidance, start, &mut phases, progress)?;
     let post_colour_transfer = st.post_colour_transfer(style_colours, progress)?;
-    save_outputs(&st, &photo_meta, &job.config, started, &job.out)?;
+    let steps = st.curve.iter().filter(|p| p.phase != StepKind::Refit).count();
+    save_outputs(&st.step, steps, &photo_meta, job, started)?;
     let report = StylizeReport {
         method: job.method,
         backend: job.backend.to_string(),
@@ -108,6 +112,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         peak_rss_mb: peak_rss_mb(),
         memory: phases.memory,
         sample_cache,
+        local_edit,
         final_losses: st.curve.iter().rev().find(|p| p.phase != StepKind::Refit).cloned(),
         curve: std::mem::take(&mut st.curve),
         warnings: warnings.into_vec(),
@@ -117,16 +122,6 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     render_test_views(job, &dataset, progress)?;
     progress.event(Event::JobDone);
     Ok(report)
-}
-
-/// The stylized test views (`job.render_test`), from the saved checkpoint.
-fn render_test_views(job: &StylizeJob, dataset: &Dataset, progress: &dyn Progress) -> Result<()> {
-    if job.render_test && !dataset.test.is_empty() {
-        let style_ck = checkpoint::load_with(&job.out, &job.backend.device(), false)?;
-        let cams: Vec<Camera> = dataset.test.iter().map(|v| v.camera).collect();
-        render_frames(&style_ck, &cams, &job.out.join("test"), progress)?;
-    }
-    Ok(())
 }
 
 /// A stylization in progress: its step, the loss curve so far, and what
@@ -231,11 +226,40 @@ impl<'a> Stylization<'a> {
     }
 
     /// `colour_map.init_field`: the refit field's colours through the map
-    /// (after the first guides, whose content renders stay the photos').
+    /// (after the first guides, whose content renders stay the photos'); a
+    /// local edit's voxels only.
     fn recolour_field(&mut self) {
         if let (true, Some(fitted)) = (self.job.config.colour_map.init_field, &self.colour_map) {
-            self.step.field.apply_colour_map(&fitted.map);
+            let only = self.step.edit.as_ref().map(|e| &e.rows[..]);
+            self.step.field.apply_colour_map(&fitted.map, only);
         }
+    }
+
+    /// A local edit: its voxels (from then on the only ones the optimiser
+    /// changes), and each reference's region drawn over its render as
+    /// `region_R.png`.
+    fn local_edit(
+        &mut self,
+        regions: &[PixelRegion],
+        guidance: &Guidance,
+        progress: &dyn Progress,
+    ) -> Result<LocalEditReport> {
+        let edit = self.step.edit_region(regions, &guidance.guides)?;
+        for (r, region) in regions.iter().enumerate() {
+            region.overlay(&self.step.render_reference(r)).save_png(&self.job.out.join(format!("region_{r}.png")))?;
+        }
+        let report = LocalEditReport {
+            painted_pixels: regions.iter().map(PixelRegion::count).collect(),
+            seen_voxels: edit.seen,
+            matched_voxels: edit.matched,
+            voxels: edit.rows.len(),
+        };
+        progress.info(format!(
+            "local edit: {} voxels a reference sees and {} matched by TCM (of {}); the rest keeps the photoreal field",
+            report.seen_voxels, report.matched_voxels, report.voxels
+        ));
+        self.step.edit = Some(edit);
+        Ok(report)
     }
 
     /// The content phase: the sample cache, then the first guides; writes
@@ -516,31 +540,6 @@ impl<'a> Stylization<'a> {
         progress.info(format!("ARF colour transfer after stylizing: {:?} + {:?}", tf.matrix, tf.offset));
         Ok(Some(tf))
     }
-}
-
-/// The stylized checkpoint (a normal grid with SH degree 0) and the
-/// stylized renders of the reference views.
-fn save_outputs(
-    st: &Stylization,
-    photo_meta: &checkpoint::CheckpointMeta,
-    config: &StylizeConfig,
-    started: Instant,
-    out: &Path,
-) -> Result<()> {
-    let mut meta = photo_meta.clone();
-    meta.sh_degree = 0;
-    meta.render.march = st.step.march();
-    meta.run_config = serde_json::to_value(config).expect("a config is plain data");
-    meta.step = st.curve.iter().filter(|p| p.phase != StepKind::Refit).count();
-    meta.train_seconds = started.elapsed().as_secs_f64();
-    let grid = &st.step.field.grid;
-    let (rows, device) = (grid.num_rows(), grid.device());
-    let zeros = (Tensor::zeros([rows, 1], &device), Tensor::zeros([rows, 3], &device));
-    checkpoint::save(&out.join(checkpoint::CHECKPOINT_FILE), &meta, grid, &zeros.0, &zeros.1, &[])?;
-    for r in 0..st.step.num_references() {
-        st.step.render_reference(r).save_png(&out.join(format!("reference_{r}.png")))?;
-    }
-    Ok(())
 }
 
 /// The name a stylization carries in the cost ledger (`util::costs`).

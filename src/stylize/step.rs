@@ -31,6 +31,7 @@ use crate::stylize::field::{
     render_chunks, render_gathered,
 };
 use crate::stylize::losses;
+use crate::stylize::region::{EditRegion, PixelRegion, edit_region};
 use crate::stylize::samples::{PseudoRays, SampleCache};
 use crate::stylize::styles::colour_stats;
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, StoredFeatures, Template};
@@ -39,7 +40,7 @@ use crate::util::image::Image;
 use crate::util::profile::{PartTime, StepProfile};
 use crate::util::progress::{Event, Progress};
 use crate::util::rng::{Stream, step_rng};
-use crate::util::tensor::{floats, scalar, to_vec};
+use crate::util::tensor::{floats, scalar, to_ints, to_vec};
 use crate::vgg::{Vgg16, VggLayer};
 
 /// The interleaved `[pixels, 3]` gradient of an image loss (planar `[1, 3, H, W]` gradient in).
@@ -163,6 +164,8 @@ pub struct StyleStep<'a> {
     pub optimiser_steps: usize,
     /// Where the current phase's steps spend their time.
     profile: StepProfile,
+    /// A local edit's voxels: the only rows the optimiser changes (all when None).
+    pub(crate) edit: Option<EditRegion>,
 }
 
 impl<'a> StyleStep<'a> {
@@ -194,6 +197,7 @@ impl<'a> StyleStep<'a> {
             kernel,
             optimiser_steps: 0,
             profile,
+            edit: None,
         }
     }
 
@@ -343,6 +347,12 @@ impl<'a> StyleStep<'a> {
     }
 
     fn optimiser_step(&mut self, grad: Tensor<2>, rows: StepRows, lr: f32) {
+        // A local edit: the gradient of every row outside it is zero, and
+        // RMSprop moves a row only by its gradient.
+        let grad = match &self.edit {
+            Some(edit) => grad * edit.gradient_mask(&mut rows.grid_rows(), &self.field.grid.device()),
+            None => grad,
+        };
         let s = &self.cfg.schedule;
         let opt = Rmsprop { beta: s.rmsprop_beta, eps: s.eps, start: self.cfg.optim.rms_init };
         self.field.rmsprop(grad, rows, lr, opt, self.kernel == RayPass::Host);
@@ -452,6 +462,21 @@ impl<'a> StyleStep<'a> {
         let tf = ColourTransfer::between(&colour_stats(&renders, self.background, which)?, style);
         self.field.apply_colour_transfer(&tf);
         Ok(tf)
+    }
+
+    /// A local edit's voxels (`stylize::region`): the references' rays by
+    /// their regions, and the training views' rays by their relu3 TCM
+    /// matches in `guides` (Ref-NPR; ARF has none, and decides only what
+    /// a reference sees).
+    pub fn edit_region(&self, regions: &[PixelRegion], guides: &[ViewGuide]) -> Result<EditRegion> {
+        let references: Vec<_> =
+            regions.iter().enumerate().map(|(r, region)| (self.samples.reference_samples(r), region)).collect();
+        let mut views = guides.iter().enumerate().filter(|(_, g)| !g.matches.is_empty()).map(|(v, g)| {
+            let k = self.dataset.train[v].camera.intrinsics;
+            let lists = self.samples.view(&self.field.grid, v).into_owned();
+            (lists, to_ints(g.matches[0].clone()), [k.width as usize, k.height as usize])
+        });
+        edit_region(self.field.grid.num_rows(), &references, &mut views)
     }
 
     /// The pseudo-ray loss's gradient on the step's rows (λ_r times the mean

@@ -183,37 +183,77 @@ impl Grade {
     }
 }
 
-/// Copies the dataset folder `src` to `out` with every colour image graded
-/// (alpha kept; depth and normal maps copied as they are): the intended
-/// result of a reference graded the same way, at every view (`refnpr eval --gt`).
-pub fn recolour_dataset(src: &Path, out: &Path, grade: Grade) -> Result<usize> {
-    ensure!(src.is_dir(), "{}: not a dataset folder", src.display());
-    ensure!(!out.exists(), "{} exists: choose a new folder", out.display());
-    let mut graded = 0;
-    copy_graded(src, out, grade, &mut graded)?;
-    Ok(graded)
+/// Which objects an edit changes: object ids of the procedural scene's
+/// `*_id.png` maps (1 ground, 2 sphere, 3 box, 4 cylinder); None: everything.
+pub type Objects<'a> = Option<&'a [u8]>;
+
+/// Per pixel of the id map at `path`, whether its object is one of
+/// `objects`; the map must be `width` x `height`.
+pub fn object_mask(path: &Path, objects: &[u8], width: u32, height: u32) -> Result<Vec<bool>> {
+    let ids = ::image::open(path).with_context(|| format!("cannot read object-id map {}", path.display()))?.to_luma8();
+    ensure!(
+        ids.dimensions() == (width, height),
+        "object-id map {} is {}x{}, the image is {width}x{height}",
+        path.display(),
+        ids.width(),
+        ids.height()
+    );
+    Ok(ids.pixels().map(|p| objects.contains(&p[0])).collect())
 }
 
-fn copy_graded(src: &Path, out: &Path, grade: Grade, graded: &mut usize) -> Result<()> {
+/// `edited` where `mask` is set, `original` elsewhere (interleaved RGB).
+pub fn only_where(original: &[f32], edited: &[f32], mask: &[bool]) -> Vec<f32> {
+    original.chunks_exact(3).zip(edited.chunks_exact(3)).zip(mask).flat_map(|((o, e), &m)| if m { e } else { o }).copied().collect()
+}
+
+/// What `recolour_dataset` did: images graded, and (with objects) images
+/// copied unchanged because they have no object-id map beside them.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Recoloured {
+    pub graded: usize,
+    pub without_ids: usize,
+}
+
+/// Copies the dataset folder `src` to `out` with every colour image graded
+/// (alpha kept; depth and normal maps copied as they are): the intended
+/// result of a reference graded the same way, at every view (`refnpr eval
+/// --gt`). With `objects`, only those objects' pixels are graded (each
+/// image's `NAME_id.png` beside it says which pixel is which): the intended
+/// result of a local edit.
+pub fn recolour_dataset(src: &Path, out: &Path, grade: Grade, objects: Objects) -> Result<Recoloured> {
+    ensure!(src.is_dir(), "{}: not a dataset folder", src.display());
+    ensure!(!out.exists(), "{} exists: choose a new folder", out.display());
+    let mut done = Recoloured::default();
+    copy_graded(src, out, grade, objects, &mut done)?;
+    Ok(done)
+}
+
+fn copy_graded(src: &Path, out: &Path, grade: Grade, objects: Objects, done: &mut Recoloured) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     for entry in std::fs::read_dir(src).with_context(|| format!("cannot read {}", src.display()))? {
         let path = entry?.path();
         let to = out.join(path.file_name().expect("a directory entry has a name"));
         let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default();
         let is_map = name.contains("_depth") || name.contains("_normal") || name.ends_with("_id.png");
+        let ids = path.with_file_name(format!("{}_id.png", name.trim_end_matches(".png")));
         if path.is_dir() {
-            copy_graded(&path, &to, grade, graded)?;
-        } else if name.ends_with(".png") && !is_map {
+            copy_graded(&path, &to, grade, objects, done)?;
+        } else if name.ends_with(".png") && !is_map && (objects.is_none() || ids.exists()) {
             let mut img =
                 ::image::open(&path).with_context(|| format!("cannot read image {}", path.display()))?.to_rgba32f();
-            for px in img.pixels_mut() {
+            let mask = match objects {
+                Some(o) => object_mask(&ids, o, img.width(), img.height())?,
+                None => vec![true; img.pixels().len()],
+            };
+            for (px, _) in img.pixels_mut().zip(&mask).filter(|(_, m)| **m) {
                 let [r, g, b] = grade.apply([px[0], px[1], px[2]]);
                 (px[0], px[1], px[2]) = (r, g, b);
             }
             let rgba = ::image::DynamicImage::ImageRgba32F(img).to_rgba8();
             rgba.save(&to).with_context(|| format!("cannot write {}", to.display()))?;
-            *graded += 1;
+            done.graded += 1;
         } else {
+            done.without_ids += usize::from(name.ends_with(".png") && !is_map);
             std::fs::copy(&path, &to).with_context(|| format!("cannot copy {} to {}", path.display(), to.display()))?;
         }
     }
@@ -238,6 +278,26 @@ mod tests {
         let grey = Grade::Hue.apply([0.4, 0.4, 0.4]);
         assert!(grey.iter().all(|c| (c - 0.4).abs() < 1e-5), "hue moved a grey: {grey:?}");
         assert_ne!(Grade::Hue.apply(yellow), yellow);
+    }
+
+    /// `recolour --objects`: only the listed objects' pixels are graded, by
+    /// the id map beside each image; an image without one is copied as it is.
+    #[test]
+    fn recolouring_some_objects_grades_only_their_pixels() {
+        let src = crate::test_support::temp_dir("recolour-objects");
+        let (red, yellow) = ([200u8, 30, 30, 255], [230u8, 200, 30, 255]);
+        let img = ::image::RgbaImage::from_fn(2, 1, |x, _| ::image::Rgba(if x == 0 { red } else { yellow }));
+        img.save(src.join("r_0.png")).unwrap();
+        img.save(src.join("other.png")).unwrap();
+        ::image::GrayImage::from_fn(2, 1, |x, _| ::image::Luma([if x == 0 { 2 } else { 3 }])).save(src.join("r_0_id.png")).unwrap();
+        let out = src.with_extension("out");
+        let _ = std::fs::remove_dir_all(&out);
+        let done = recolour_dataset(&src, &out, Grade::Hue, Some(&[2])).unwrap();
+        assert_eq!(done, Recoloured { graded: 1, without_ids: 1 });
+        let got = ::image::open(out.join("r_0.png")).unwrap().to_rgba8();
+        assert_ne!(got.get_pixel(0, 0).0, red, "object 2 was not graded");
+        assert_eq!(got.get_pixel(1, 0).0, yellow, "object 3 was graded");
+        assert_eq!(::image::open(out.join("other.png")).unwrap().to_rgba8(), img, "no id map: copied");
     }
 
     #[test]

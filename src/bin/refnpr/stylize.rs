@@ -78,18 +78,28 @@ pub struct PaintArgs {
     /// A colour grade instead of the painterly repaint (a recolouring reference).
     #[arg(long, value_enum)]
     pub grade: Option<paint::Grade>,
+    /// Repaint only these objects (ids of the procedural scene's `*_id.png`:
+    /// 1 ground, 2 sphere, 3 box, 4 cylinder), read from `--ids`: a local edit.
+    #[arg(long, value_delimiter = ',', requires = "ids")]
+    pub objects: Vec<u8>,
+    /// The object-id map of the image (the reference view's `r_N_id.png`).
+    #[arg(long, requires = "objects")]
+    pub ids: Option<PathBuf>,
 }
 
 /// `refnpr paint`: the painterly repaint filter (or a colour grade) on an image.
 pub fn paint(args: PaintArgs) -> Result<()> {
-    let PaintArgs { input, out, seed, grade } = args;
+    let PaintArgs { input, out, seed, grade, objects, ids } = args;
     let img = ::image::open(&input).with_context(|| format!("cannot read image {}", input.display()))?.to_rgba32f();
     let (w, h) = (img.width(), img.height());
     let rgb = data::composite_over(&img, [1.0; 3]);
-    let painted = match grade {
+    let mut painted = match grade {
         Some(g) => g.image(&rgb),
         None => paint::painterly(&rgb, w as usize, h as usize, seed),
     };
+    if let Some(ids) = ids {
+        painted = paint::only_where(&rgb, &painted, &paint::object_mask(&ids, &objects, w, h)?);
+    }
     image::save_png(&out, w, h, &painted)?;
     println!("wrote {}", out.display());
     Ok(())
@@ -107,13 +117,26 @@ pub struct RecolourArgs {
     /// The colour grade, as `paint --grade` applies it.
     #[arg(long, value_enum)]
     pub grade: paint::Grade,
+    /// Grade only these objects (ids of the procedural scene's `*_id.png`,
+    /// as `paint --objects`): the intended result of a local edit.
+    #[arg(long, value_delimiter = ',')]
+    pub objects: Vec<u8>,
 }
 
-/// `refnpr recolour`: a dataset with every image graded.
+/// `refnpr recolour`: a dataset with every image graded (or only some objects' pixels).
 pub fn recolour(args: RecolourArgs) -> Result<()> {
-    let RecolourArgs { data, out, grade } = args;
-    let n = paint::recolour_dataset(&data, &out, grade)?;
-    println!("wrote {} with {n} images graded ({grade:?})", out.display());
+    let RecolourArgs { data, out, grade, objects } = args;
+    let only = (!objects.is_empty()).then_some(&objects[..]);
+    let done = paint::recolour_dataset(&data, &out, grade, only)?;
+    println!("wrote {} with {} images graded ({grade:?})", out.display(), done.graded);
+    if done.without_ids > 0 {
+        println!("{} images have no object-id map beside them: copied unchanged", done.without_ids);
+    }
+    anyhow::ensure!(
+        only.is_none() || done.graded > 0,
+        "no image of {} has an object-id map (NAME_id.png) beside it: nothing was graded",
+        data.display()
+    );
     Ok(())
 }
 
