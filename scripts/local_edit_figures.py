@@ -7,10 +7,10 @@ usage: scripts/local_edit_figures.py SCENE GRADED PHOTO STYLE OBJECTS [REFERENCE
   PHOTO     the photoreal run's test renders (`refnpr render --path test`: DIR/rgb/NNNN.png)
   STYLE     the stylized run's test renders (STYLE/test/rgb/NNNN.png)
   OBJECTS   the edited object ids, comma-separated (1 ground, 2 sphere, 3 box, 4 cylinder)
-  REFERENCE the reference's training view index (default 0)
+  REFERENCE the references' training view indices, comma-separated (default 0)
 
-Prints, for the edited objects, the PSNR of the stylized renders against
-GRADED over the surfaces the reference sees and those it does not (and the
+Prints, for each edited object, the PSNR of the stylized renders against
+GRADED over the surfaces a reference sees and those none does (and the
 photoreal renders' PSNR against GRADED beside them: what the edit has to
 move); for every other object, the PSNR of the stylized renders against
 the photoreal renders and the share of its pixels that are the same, to
@@ -68,21 +68,21 @@ def main(scene, graded, photo, style, objects, reference="0"):
     edited = [int(o) for o in objects.split(",")]
     angle, test = cameras(scene, "test")
     _, train = cameras(scene, "train")
-    ref = int(reference)
-    ref_depth = np.load(f"{scene}/train/r_{ref}_depth.npy")
-    focal = 0.5 * ref_depth.shape[1] / np.tan(0.5 * angle)
-    parts = {k: [] for k in ("seen", "unseen", "photo_seen", "photo_unseen")}
+    refs = [(train[r], np.load(f"{scene}/train/r_{r}_depth.npy")) for r in map(int, reference.split(","))]
+    focal = 0.5 * refs[0][1].shape[1] / np.tan(0.5 * angle)
+    parts = {(o, k): [] for o in edited for k in ("seen", "unseen", "photo_seen", "photo_unseen")}
     others = {}
     for i, c2w in enumerate(test):
         ids = np.asarray(Image.open(f"{scene}/test/r_{i}_id.png"))
         depth = np.load(f"{scene}/test/r_{i}_depth.npy")
         stylized, photoreal = rgb(f"{style}/{i:04d}.png"), rgb(f"{photo}/{i:04d}.png")
         truth = rgb(f"{graded}/test/r_{i}.png")
-        seen = seen_from(world_points(c2w, depth, focal), depth > 0, train[ref], ref_depth, focal)
-        mine = np.isin(ids, edited)
-        for name, mask in (("seen", mine & seen), ("unseen", mine & ~seen)):
-            parts[name].append(((stylized - truth) ** 2).mean(-1)[mask])
-            parts["photo_" + name].append(((photoreal - truth) ** 2).mean(-1)[mask])
+        points = world_points(c2w, depth, focal)
+        seen = np.any([seen_from(points, depth > 0, c, d, focal) for c, d in refs], axis=0)
+        for o in edited:
+            for name, mask in (("seen", (ids == o) & seen), ("unseen", (ids == o) & ~seen)):
+                parts[o, name].append(((stylized - truth) ** 2).mean(-1)[mask])
+                parts[o, "photo_" + name].append(((photoreal - truth) ** 2).mean(-1)[mask])
         for o in np.unique(ids):
             if o == 0 or o in edited:
                 continue
@@ -90,13 +90,14 @@ def main(scene, graded, photo, style, objects, reference="0"):
             err, same = others.setdefault(int(o), ([], []))
             err.append(((stylized - photoreal) ** 2).mean(-1)[mask])
             same.append(np.all(stylized == photoreal, -1)[mask])
-    print(f"| edited objects {edited} vs the intended result | stylized | photoreal | pixels |")
-    print("| --- | --- | --- | --- |")
-    for name in ("seen", "unseen"):
-        (p, n), (q, _) = psnr(parts[name]), psnr(parts["photo_" + name])
-        print(f"| {name} by the reference | {p:.2f} dB | {q:.2f} dB | {n} |")
+    print("| edited object vs the intended result | surfaces | stylized | photoreal | pixels |")
+    print("| --- | --- | --- | --- | --- |")
+    for o in edited:
+        for name in ("seen", "unseen"):
+            (p, n), (q, _) = psnr(parts[o, name]), psnr(parts[o, "photo_" + name])
+            print(f"| {o} | {name} by a reference | {p:.2f} dB | {q:.2f} dB | {n} |")
     print()
-    print("| other object vs the photoreal renders | PSNR | same pixels |")
+    print("| other object vs the photoreal renders | PSNR | same pixels (8 bits) |")
     print("| --- | --- | --- |")
     for o, (err, same) in sorted(others.items()):
         p, n = psnr(err)

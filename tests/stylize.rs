@@ -849,7 +849,8 @@ fn tiny_scene_painted_on_one_object_changes_only_that_object() {
     let case = t.path().join("case");
     std::fs::create_dir_all(&case).unwrap();
     Image::new(w, h, style.clone()).save_png(&case.join("style.png")).unwrap();
-    let toml = |region: &str| format!("[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\nregion = \"{region}\"\n");
+    let toml =
+        |region: &str| format!("[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\nregion = \"{region}\"\n");
     std::fs::write(case.join("reference.toml"), toml("difference")).unwrap();
     let out = t.path().join("style");
     let report = run_stylize(&job(&photo, &case, &out, quick_config(2), Method::RefNpr), &refnpr::Quiet).unwrap();
@@ -868,7 +869,8 @@ fn tiny_scene_painted_on_one_object_changes_only_that_object() {
     let (mut same, mut others) = (0, 0);
     for (i, v) in twin.test.iter().enumerate() {
         let ids = paint::object_mask(&scene.join(format!("test/r_{i}_id.png")), &sphere, w as u32, h as u32).unwrap();
-        let background = paint::object_mask(&scene.join(format!("test/r_{i}_id.png")), &[0], w as u32, h as u32).unwrap();
+        let background =
+            paint::object_mask(&scene.join(format!("test/r_{i}_id.png")), &[0], w as u32, h as u32).unwrap();
         let (stylized, photoreal) = (style_ck.render_view(&v.camera).image, photo_ck.render_view(&v.camera).image);
         for p in 0..w * h {
             let sq = |a: &[f32], b: &[f32]| (0..3).map(|c| f64::from(a[p * 3 + c] - b[p * 3 + c]).powi(2)).sum::<f64>();
@@ -902,7 +904,8 @@ fn tiny_scene_painted_on_one_object_changes_only_that_object() {
     };
     image::GrayImage::from_pixel(w as u32 + 1, h as u32, image::Luma([255])).save(case.join("big.png")).unwrap();
     refused("big.png", &["big.png", "the mask must be the view's size"]);
-    let corner = image::GrayImage::from_fn(w as u32, h as u32, |x, y| image::Luma([if x < 2 && y < 2 { 255 } else { 0 }]));
+    let corner =
+        image::GrayImage::from_fn(w as u32, h as u32, |x, y| image::Luma([if x < 2 && y < 2 { 255 } else { 0 }]));
     corner.save(case.join("corner.png")).unwrap();
     refused("corner.png", &["corner.png", "cover no surface"]);
     content.save_png(&case.join("style.png")).unwrap();

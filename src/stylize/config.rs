@@ -432,6 +432,16 @@ pub struct VggConfig {
     pub weights: VggWeights,
 }
 
+/// The controls an artist turns beside the painting (docs/local_edits.md).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ControlsConfig {
+    /// Keep the photo's colours and take only the painting's light and dark:
+    /// after the image epochs each voxel keeps the stylized luminance and
+    /// takes the refit photo colour's chroma (`--preserve-colour`).
+    pub preserve_colour: bool,
+}
+
 /// Everything `refnpr stylize` needs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -447,6 +457,8 @@ pub struct StylizeConfig {
     pub colour_map: ColourMapConfig,
     /// The losses' feature network.
     pub vgg: VggConfig,
+    /// What an artist turns beside the painting.
+    pub controls: ControlsConfig,
     /// Colour at voxels with empty corners, for the stylized field (its
     /// checkpoint records it, so every render of it uses the same).
     pub colour_corners: ColourCorners,
@@ -487,6 +499,7 @@ impl Default for StylizeConfig {
             register: RegisterParams::default(),
             colour_map: ColourMapConfig::default(),
             vgg: VggConfig::default(),
+            controls: ControlsConfig::default(),
             colour_corners: ColourCorners::Renormalised,
             min_sample_weight: 1e-5,
             sample_cache_mb: 2048,

@@ -172,6 +172,15 @@ impl StyleField {
         self.grid.sh = floats(mapped, [sh.len() / 3, 3], &device);
     }
 
+    /// Keeps the colours of `photo` (a degree-0 SH grid of the same rows)
+    /// under this field's light and dark (`keep_chroma`).
+    pub fn keep_chroma_of(&mut self, photo: &[f32]) {
+        let device = self.grid.device();
+        let kept = keep_chroma(&to_vec(self.grid.sh.clone()), photo);
+        let rows = kept.len() / 3;
+        self.grid.sh = floats(kept, [rows, 3], &device);
+    }
+
     /// The RMSprop running averages `[rows, 3]`.
     pub fn rms(&self) -> Tensor<2> {
         self.rms.clone()
@@ -263,6 +272,23 @@ impl StyleField {
             None => into,
         }
     }
+}
+
+/// Degree-0 SH colours (`[rows, 3]`, flat) with `style`'s luminance
+/// (Rec. 601) and `photo`'s chroma: each row is the photo's plus the
+/// difference of their luminances on every channel, which keeps the
+/// photo's Cb and Cr and takes the style's Y. Luminance is linear, so the
+/// SH coefficients' difference is the colours' over C0.
+pub fn keep_chroma(style: &[f32], photo: &[f32]) -> Vec<f32> {
+    let luma = |s: &[f32]| 0.299 * s[0] + 0.587 * s[1] + 0.114 * s[2];
+    style
+        .chunks_exact(3)
+        .zip(photo.chunks_exact(3))
+        .flat_map(|(s, p)| {
+            let shift = luma(s) - luma(p);
+            [p[0] + shift, p[1] + shift, p[2] + shift]
+        })
+        .collect()
 }
 
 /// A chunk of rays on the device, ready for both passes of deferred
@@ -513,5 +539,27 @@ mod graph_oracle {
             eprintln!("sparse {sparse}: host vs graph gradient, relative L2 error {:.2e}", err / norm);
             assert!(norm > 0.0 && err / norm < tol(1e-5), "sparse {sparse}: relative error {}", err / norm);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::keep_chroma;
+
+    /// The kept colour has the style's luminance and the photo's chroma;
+    /// a grey style over a coloured photo keeps the photo's hue.
+    #[test]
+    fn keep_chroma_takes_luminance_from_the_style_and_chroma_from_the_photo() {
+        let (style, photo) = ([0.9, 0.1, -0.4, 0.2, 0.2, 0.2], [-0.3, 0.5, 0.1, 0.6, -0.2, 0.0]);
+        let kept = keep_chroma(&style, &photo);
+        let luma = |s: &[f32]| 0.299 * s[0] + 0.587 * s[1] + 0.114 * s[2];
+        // Chroma as Rec. 601 defines it: Cb ~ B - Y, Cr ~ R - Y.
+        let chroma = |s: &[f32]| [s[2] - luma(s), s[0] - luma(s)];
+        for (k, (s, p)) in kept.chunks(3).zip(style.chunks(3).zip(photo.chunks(3))) {
+            assert!((luma(k) - luma(s)).abs() < 1e-6, "luminance {k:?} vs the style's {s:?}");
+            let (a, b) = (chroma(k), chroma(p));
+            assert!((a[0] - b[0]).abs() < 1e-6 && (a[1] - b[1]).abs() < 1e-6, "chroma {k:?} vs the photo's {p:?}");
+        }
+        assert_ne!(kept[..3], style[..3]);
     }
 }

@@ -10,14 +10,16 @@
 //!    without `region` edits all of its pixels.
 //! 2. Those pixels become voxels (`edit_region`). A voxel a reference sees
 //!    is edited when more of its compositing weight, over that reference's
-//!    rays, comes from edited pixels than from kept ones. A voxel no
+//!    rays, comes from edited pixels than from kept ones (for some
+//!    reference: what one leaves unpainted does not veto another's edit). A voxel no
 //!    reference sees is decided by TCM: every training pixel takes the label
 //!    of the reference position its content features match (relu3, the
 //!    finer block), and the voxel takes the label with more weight, so the
 //!    far side of a painted object follows the object, and the far side of
 //!    a kept one stays.
 //! 3. The optimiser changes only edited voxels (`StyleStep::image_step`'s
-//!    gradient is masked), and the saved field (`compose`) is the photoreal
+//!    gradient is masked), L_ref's reference pixels are the edited ones,
+//!    and the saved field (`compose`) is the photoreal
 //!    checkpoint, every SH band and the far background included, with the
 //!    edited voxels' colour replaced: a ray that crosses no edited voxel
 //!    renders exactly as the photoreal field renders it.
@@ -104,7 +106,8 @@ impl PixelRegion {
             .map(|i| {
                 let (x, y) = (i % w, i / w);
                 let ys = y.saturating_sub(radius)..(y + radius + 1).min(h);
-                let mut window = ys.flat_map(|yy| (x.saturating_sub(radius)..(x + radius + 1).min(w)).map(move |xx| (xx, yy)));
+                let mut window =
+                    ys.flat_map(|yy| (x.saturating_sub(radius)..(x + radius + 1).min(w)).map(move |xx| (xx, yy)));
                 match grow {
                     true => window.any(|(xx, yy)| self.inside[yy * w + xx]),
                     false => window.all(|(xx, yy)| self.inside[yy * w + xx]),
@@ -246,9 +249,18 @@ pub fn edit_region(
     references: &[(FrozenSamples, &PixelRegion)],
     views: &mut dyn Iterator<Item = (FrozenSamples, Vec<i32>, [usize; 2])>,
 ) -> Result<EditRegion> {
-    let (mut ref_edit, mut ref_keep) = (vec![0.0f32; num_rows], vec![0.0f32; num_rows]);
+    // Per row: seen by some reference, and edited by one (each reference
+    // decides for itself: what one leaves unpainted does not veto another's edit).
+    let (mut seen_by_reference, mut edited) = (vec![false; num_rows], vec![false; num_rows]);
     for (samples, region) in references {
-        vote(samples, |ray| Some(region.inside[ray]), &mut ref_edit, &mut ref_keep);
+        let (mut edit, mut keep) = (vec![0.0f32; num_rows], vec![0.0f32; num_rows]);
+        vote(samples, |ray| Some(region.inside[ray]), &mut edit, &mut keep);
+        for row in 0..num_rows {
+            if edit[row] + keep[row] > MIN_WEIGHT {
+                seen_by_reference[row] = true;
+                edited[row] |= edit[row] > keep[row];
+            }
+        }
     }
     // Per relu3 position of the references, one after another: edited or not.
     let template: Vec<bool> = references
@@ -271,17 +283,16 @@ pub fn edit_region(
     }
     let (mut seen, mut matched) = (0, 0);
     let rows = (0..num_rows)
-        .map(|row| {
-            let edited = match ref_edit[row] + ref_keep[row] > MIN_WEIGHT {
-                true => ref_edit[row] > ref_keep[row],
-                false => tcm_edit[row] > tcm_keep[row] && tcm_edit[row] > MIN_WEIGHT,
-            };
-            match (edited, ref_edit[row] + ref_keep[row] > MIN_WEIGHT) {
-                (true, true) => seen += 1,
-                (true, false) => matched += 1,
-                _ => {}
+        .map(|row| match seen_by_reference[row] {
+            true => {
+                seen += usize::from(edited[row]);
+                edited[row]
             }
-            edited
+            false => {
+                let by_tcm = tcm_edit[row] > tcm_keep[row] && tcm_edit[row] > MIN_WEIGHT;
+                matched += usize::from(by_tcm);
+                by_tcm
+            }
         })
         .collect();
     if seen + matched == 0 {
@@ -293,7 +304,11 @@ pub fn edit_region(
 impl EditRegion {
     /// Per row of a step's gradient buffer (`grid_rows`: its grid rows in
     /// order), 1 where the row may change and 0 elsewhere, as a `[rows, 1]` factor.
-    pub fn gradient_mask(&self, grid_rows: &mut dyn Iterator<Item = usize>, device: &burn::tensor::Device) -> Tensor<2> {
+    pub fn gradient_mask(
+        &self,
+        grid_rows: &mut dyn Iterator<Item = usize>,
+        device: &burn::tensor::Device,
+    ) -> Tensor<2> {
         let mask: Vec<f32> = grid_rows.map(|r| f32::from(u8::from(self.rows[r]))).collect();
         let n = mask.len();
         floats(mask, [n, 1], device)

@@ -7,27 +7,21 @@
 //! `stylize.json` and the test views.
 
 use std::collections::BTreeMap;
-use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{Result, bail};
-use burn::tensor::Tensor;
 use rand::seq::SliceRandom;
 
 use crate::field::checkpoint;
-use crate::field::render_path::render_frames;
-use crate::scene::camera::Camera;
-use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
-use crate::stylize::config::StylizeConfig;
 use crate::stylize::guides::{self, ColourSource, Content};
-use crate::stylize::outputs::{render_test_views, save_outputs};
 use crate::stylize::inputs::{Inputs, keeps_content, registration, style_side};
+use crate::stylize::outputs::{render_test_views, save_outputs};
 use crate::stylize::recolouring::{FittedMap, explained_on_content, fit_colour_map, with_recolouring_schedule};
+use crate::stylize::region::PixelRegion;
 use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::step::{Guidance, StyleStep};
 use crate::stylize::styles::is_background;
-use crate::stylize::region::PixelRegion;
 use crate::stylize::{CurvePoint, LocalEditReport, Method, StepKind, StylizeJob, StylizeReport};
 use crate::util::costs::Work;
 use crate::util::diverged;
@@ -87,6 +81,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         st.restore(state);
     }
     st.image_epochs(&styles, guidance, start, &mut phases, progress)?;
+    st.preserve_colour();
     let post_colour_transfer = st.post_colour_transfer(style_colours, progress)?;
     let steps = st.curve.iter().filter(|p| p.phase != StepKind::Refit).count();
     save_outputs(&st.step, steps, &photo_meta, job, started)?;
@@ -235,6 +230,13 @@ impl<'a> Stylization<'a> {
         }
     }
 
+    /// `[controls] preserve_colour`: the refit photo's chroma under the stylized luminance.
+    fn preserve_colour(&mut self) {
+        if self.job.config.controls.preserve_colour {
+            self.step.field.keep_chroma_of(&self.refit_sh);
+        }
+    }
+
     /// A local edit: its voxels (from then on the only ones the optimiser
     /// changes), and each reference's region drawn over its render as
     /// `region_R.png`.
@@ -245,6 +247,7 @@ impl<'a> Stylization<'a> {
         progress: &dyn Progress,
     ) -> Result<LocalEditReport> {
         let edit = self.step.edit_region(regions, &guidance.guides)?;
+        self.step.samples.keep_reference_pixels(|r, i| regions[r].inside[i]);
         for (r, region) in regions.iter().enumerate() {
             region.overlay(&self.step.render_reference(r)).save_png(&self.job.out.join(format!("region_{r}.png")))?;
         }

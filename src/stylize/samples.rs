@@ -298,6 +298,12 @@ impl<'a> SampleCache<'a> {
         }
     }
 
+    /// Keeps only the reference pixels `keep(reference, pixel)` accepts for
+    /// L_ref (a local edit's regions).
+    pub fn keep_reference_pixels(&mut self, keep: impl Fn(usize, usize) -> bool) {
+        self.reference_pixels.retain(|&(r, i)| keep(r, i));
+    }
+
     /// A step's pseudo-rays for L_ref: a batch of reference pixels and a
     /// batch of registered pixels, each with its target colours (none when
     /// L_ref is off).

@@ -203,7 +203,13 @@ pub fn object_mask(path: &Path, objects: &[u8], width: u32, height: u32) -> Resu
 
 /// `edited` where `mask` is set, `original` elsewhere (interleaved RGB).
 pub fn only_where(original: &[f32], edited: &[f32], mask: &[bool]) -> Vec<f32> {
-    original.chunks_exact(3).zip(edited.chunks_exact(3)).zip(mask).flat_map(|((o, e), &m)| if m { e } else { o }).copied().collect()
+    original
+        .chunks_exact(3)
+        .zip(edited.chunks_exact(3))
+        .zip(mask)
+        .flat_map(|((o, e), &m)| if m { e } else { o })
+        .copied()
+        .collect()
 }
 
 /// What `recolour_dataset` did: images graded, and (with objects) images
@@ -289,7 +295,9 @@ mod tests {
         let img = ::image::RgbaImage::from_fn(2, 1, |x, _| ::image::Rgba(if x == 0 { red } else { yellow }));
         img.save(src.join("r_0.png")).unwrap();
         img.save(src.join("other.png")).unwrap();
-        ::image::GrayImage::from_fn(2, 1, |x, _| ::image::Luma([if x == 0 { 2 } else { 3 }])).save(src.join("r_0_id.png")).unwrap();
+        ::image::GrayImage::from_fn(2, 1, |x, _| ::image::Luma([if x == 0 { 2 } else { 3 }]))
+            .save(src.join("r_0_id.png"))
+            .unwrap();
         let out = src.with_extension("out");
         let _ = std::fs::remove_dir_all(&out);
         let done = recolour_dataset(&src, &out, Grade::Hue, Some(&[2])).unwrap();

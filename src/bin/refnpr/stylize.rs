@@ -12,6 +12,7 @@ use refnpr::reference::r3::RegisterParams;
 use refnpr::reference::registration;
 use refnpr::scene::data;
 use refnpr::stylize::config::{Preset, StylizeConfig};
+use refnpr::stylize::region;
 use refnpr::stylize::run::run_stylize;
 use refnpr::stylize::{Method, StylizeJob};
 use refnpr::tools::paint;
@@ -85,11 +86,15 @@ pub struct PaintArgs {
     /// The object-id map of the image (the reference view's `r_N_id.png`).
     #[arg(long, requires = "objects")]
     pub ids: Option<PathBuf>,
+    /// Repaint only where this mask image (the image's size) is white: a
+    /// local edit, whose case can name the same mask as its `region`.
+    #[arg(long, conflicts_with = "objects")]
+    pub mask: Option<PathBuf>,
 }
 
 /// `refnpr paint`: the painterly repaint filter (or a colour grade) on an image.
 pub fn paint(args: PaintArgs) -> Result<()> {
-    let PaintArgs { input, out, seed, grade, objects, ids } = args;
+    let PaintArgs { input, out, seed, grade, objects, ids, mask } = args;
     let img = ::image::open(&input).with_context(|| format!("cannot read image {}", input.display()))?.to_rgba32f();
     let (w, h) = (img.width(), img.height());
     let rgb = data::composite_over(&img, [1.0; 3]);
@@ -97,8 +102,13 @@ pub fn paint(args: PaintArgs) -> Result<()> {
         Some(g) => g.image(&rgb),
         None => paint::painterly(&rgb, w as usize, h as usize, seed),
     };
-    if let Some(ids) = ids {
-        painted = paint::only_where(&rgb, &painted, &paint::object_mask(&ids, &objects, w, h)?);
+    let only = match (ids, mask) {
+        (Some(ids), _) => Some(paint::object_mask(&ids, &objects, w, h)?),
+        (None, Some(mask)) => Some(region::mask_region(&mask, w as usize, h as usize)?.inside),
+        (None, None) => None,
+    };
+    if let Some(only) = only {
+        painted = paint::only_where(&rgb, &painted, &only);
     }
     image::save_png(&out, w, h, &painted)?;
     println!("wrote {}", out.display());
@@ -208,6 +218,9 @@ pub struct StylizeArgs {
     /// The backend: flex (CPU, the default), ndarray (CPU) or wgpu (GPU).
     #[arg(long, value_enum, env = "REFNPR_BACKEND")]
     pub backend: Option<BackendKind>,
+    /// Keep the photo's colours and take only the painting's light and dark ([controls] preserve_colour).
+    #[arg(long)]
+    pub preserve_colour: bool,
     /// Skip rendering the test views of the result.
     #[arg(long)]
     pub no_render: bool,
@@ -237,6 +250,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
         style,
         epochs,
         backend,
+        preserve_colour,
         no_render,
         resume,
         registration,
@@ -249,6 +263,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
     if let Some(e) = epochs {
         config.schedule.image_epochs = e;
     }
+    config.controls.preserve_colour |= preserve_colour;
     config.register =
         config::overlay(&config.register, given_flags(&register, matches)?, "the command line", "R³ flags")?;
     config.validate()?;
