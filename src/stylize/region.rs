@@ -24,6 +24,7 @@
 //!    edited voxels' colour replaced: a ray that crosses no edited voxel
 //!    renders exactly as the photoreal field renders it.
 
+use std::borrow::Cow;
 use std::path::Path;
 
 use anyhow::{Context, Result, bail, ensure};
@@ -247,7 +248,7 @@ fn vote(samples: &FrozenSamples, label: impl Fn(usize) -> Option<bool>, edit: &m
 pub fn edit_region(
     num_rows: usize,
     references: &[(FrozenSamples, &PixelRegion)],
-    views: &mut dyn Iterator<Item = (FrozenSamples, Vec<i32>, [usize; 2])>,
+    views: &mut dyn Iterator<Item = (Cow<'_, FrozenSamples>, Vec<i32>, [usize; 2])>,
 ) -> Result<EditRegion> {
     // Per row: seen by some reference, and edited by one (each reference
     // decides for itself: what one leaves unpainted does not veto another's edit).

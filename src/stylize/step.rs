@@ -473,7 +473,7 @@ impl<'a> StyleStep<'a> {
             regions.iter().enumerate().map(|(r, region)| (self.samples.reference_samples(r), region)).collect();
         let mut views = guides.iter().enumerate().filter(|(_, g)| !g.matches.is_empty()).map(|(v, g)| {
             let k = self.dataset.train[v].camera.intrinsics;
-            let lists = self.samples.view(&self.field.grid, v).into_owned();
+            let lists = self.samples.view(&self.field.grid, v);
             (lists, to_ints(g.matches[0].clone()), [k.width as usize, k.height as usize])
         });
         edit_region(self.field.grid.num_rows(), &references, &mut views)
