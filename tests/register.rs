@@ -197,6 +197,44 @@ fn angle_threshold_rejects_what_it_should() {
     }
 }
 
+/// A local edit: a reference pixel outside its region (`Surface::keep_points`)
+/// enters no dictionary, so a point two references see takes the painted
+/// colour, never the unpainted one, whatever the references' order.
+#[test]
+fn unpainted_reference_pixels_register_nothing() {
+    let point = Vec3::new(0.1, 0.2, 0.3);
+    let one = |colour: [f32; 3]| Reference {
+        surface: Surface {
+            width: 1,
+            height: 1,
+            points: vec![Some(point)],
+            dirs: vec![Vec3::X],
+            rays: vec![(point - Vec3::X, Vec3::X)],
+        },
+        colours: vec![colour],
+    };
+    let view = Surface {
+        width: 1,
+        height: 1,
+        points: vec![Some(point)],
+        rays: vec![(Vec3::ZERO, Vec3::X)],
+        dirs: vec![Vec3::X],
+    };
+    let params = RegisterParams::default();
+    let (mut unpainted, painted) = (one([0.0, 0.0, 1.0]), one([1.0, 0.0, 0.0]));
+    let both = Dictionary::build(&[unpainted.clone(), painted.clone()], &params).unwrap();
+    assert_eq!(
+        register_view(&both, &view, &params).colours,
+        vec![[0.0, 0.0, 1.0]],
+        "unmasked, the first reference wins"
+    );
+    unpainted.surface.keep_points(&[false]);
+    let masked = Dictionary::build(&[unpainted.clone(), painted], &params).unwrap();
+    let reg = register_view(&masked, &view, &params);
+    assert_eq!((reg.colours, reg.reference), (vec![[1.0, 0.0, 0.0]], vec![1]));
+    assert!(Dictionary::build(&[unpainted], &params).is_none(), "a reference with no edited pixel stores nothing");
+}
+
 /// Points farther than max_dist_voxels from every stored point are not registered.
 #[test]
 fn distance_threshold_and_sparse_storage() {

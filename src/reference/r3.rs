@@ -127,6 +127,16 @@ impl Surface {
     pub fn num_hits(&self) -> usize {
         self.points.iter().filter(|p| p.is_some()).count()
     }
+
+    /// Drops the points of the pixels `keep` (row-major) does not mark.
+    pub fn keep_points(&mut self, keep: &[bool]) {
+        assert_eq!(keep.len(), self.points.len(), "one flag per pixel");
+        for (p, k) in self.points.iter_mut().zip(keep) {
+            if !k {
+                *p = None;
+            }
+        }
+    }
 }
 
 /// A reference view: its surface and the stylized colour of every pixel.

@@ -348,11 +348,16 @@ pub fn lift_references(
 
 /// Lifts the case's references with the field's depth and registers every
 /// training view. Returns the pseudo-rays and the report (no files written).
+/// `edited` (a local edit: per reference, row-major, its edited pixels)
+/// keeps every other reference pixel out of the dictionary, so a training
+/// ray takes a painted colour or none: a reference's unpainted pixels are
+/// the photo, and would pull a surface another reference paints back to it.
 pub fn register_case(
     ck: &Checkpoint,
     dataset: &Dataset,
     case: &ReferenceCase,
     params: &RegisterParams,
+    edited: Option<&[Vec<bool>]>,
     progress: &dyn Progress,
 ) -> Result<(RegistrationFile, RegisterReport)> {
     params.validate()?;
@@ -362,7 +367,10 @@ pub fn register_case(
     }
     let t0 = Instant::now();
     let marcher = Marcher::new(&ck.grid);
-    let (refs, ref_pixels) = lift_references(ck, &marcher, dataset, case, &mut warnings)?;
+    let (mut refs, ref_pixels) = lift_references(ck, &marcher, dataset, case, &mut warnings)?;
+    for (r, edited) in refs.iter_mut().zip(edited.unwrap_or_default()) {
+        r.surface.keep_points(edited);
+    }
     let views: Vec<Surface> = dataset.train.iter().map(|v| surface_with(&marcher, ck, &v.camera)).collect();
     let depth_seconds = t0.elapsed().as_secs_f64();
 
@@ -422,7 +430,7 @@ pub fn run_register(
     progress: &dyn Progress,
 ) -> Result<RegisterReport> {
     files::create_dir(out)?;
-    let (file, report) = register_case(ck, dataset, case, params, progress)?;
+    let (file, report) = register_case(ck, dataset, case, params, None, progress)?;
     file.save(&out.join(REGISTRATION_FILE))?;
     files::write_json(&out.join("register.json"), &report)?;
     let dir = out.join("overlays");

@@ -433,13 +433,43 @@ pub struct VggConfig {
 }
 
 /// The controls an artist turns beside the painting (docs/local_edits.md).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct ControlsConfig {
     /// Keep the photo's colours and take only the painting's light and dark:
     /// after the image epochs each voxel keeps the stylized luminance and
     /// takes the refit photo colour's chroma (`--preserve-colour`).
     pub preserve_colour: bool,
+    /// The painting's pattern larger (> 1) or smaller (< 1) on the surfaces
+    /// TCM carries it to: the template's features are taken of the
+    /// references resized by this factor, so a stroke n pixels wide is
+    /// matched as one n x stroke_scale wide (`--stroke-scale`; 1: the paper).
+    pub stroke_scale: f32,
+    /// How much of the stylization the field keeps: 1 all of it, 0 the refit
+    /// photo; between, each voxel's colour is the blend (`--style-strength`).
+    pub style_strength: f32,
+}
+
+impl Default for ControlsConfig {
+    fn default() -> Self {
+        Self { preserve_colour: false, stroke_scale: 1.0, style_strength: 1.0 }
+    }
+}
+
+impl ControlsConfig {
+    pub fn validate(&self) -> Result<()> {
+        ensure!(
+            (0.25..=4.0).contains(&self.stroke_scale),
+            "controls.stroke_scale must be in [0.25, 4], got {}",
+            self.stroke_scale
+        );
+        ensure!(
+            (0.0..=1.0).contains(&self.style_strength),
+            "controls.style_strength must be in [0, 1], got {}",
+            self.style_strength
+        );
+        Ok(())
+    }
 }
 
 /// Everything `refnpr stylize` needs.
@@ -593,6 +623,7 @@ impl StylizeConfig {
         ensure!(l.tv_fraction > 0.0 && l.tv_fraction <= 1.0, "loss.tv_fraction must be in (0, 1]");
         ensure!((0.0..1.0).contains(&self.min_sample_weight), "min_sample_weight must be in [0, 1)");
         self.colour_map.validate()?;
+        self.controls.validate()?;
         self.register.validate()
     }
 }
@@ -602,6 +633,17 @@ mod tests {
     use super::*;
 
     /// The compiled-in presets parse, and each is what its help says.
+    /// The controls' ranges are checked, naming the key.
+    #[test]
+    fn controls_out_of_range_are_refused_naming_the_key() {
+        let mut config = StylizeConfig::default();
+        assert_eq!((config.controls.stroke_scale, config.controls.style_strength), (1.0, 1.0));
+        config.controls.stroke_scale = 0.0;
+        assert!(config.validate().unwrap_err().to_string().contains("controls.stroke_scale"));
+        config.controls = ControlsConfig { style_strength: 1.5, ..ControlsConfig::default() };
+        assert!(config.validate().unwrap_err().to_string().contains("controls.style_strength"));
+    }
+
     #[test]
     fn presets_parse_and_are_what_they_say() {
         let paper = Preset::Paper.config().unwrap();

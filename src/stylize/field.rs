@@ -181,6 +181,15 @@ impl StyleField {
         self.grid.sh = floats(kept, [rows, 3], &device);
     }
 
+    /// Keeps `strength` of the stylization: each colour the blend of this
+    /// field's and `photo`'s (a degree-0 SH grid of the same rows; `blend`).
+    pub fn blend_with(&mut self, photo: &[f32], strength: f32) {
+        let device = self.grid.device();
+        let blended = blend(&to_vec(self.grid.sh.clone()), photo, strength);
+        let rows = blended.len() / 3;
+        self.grid.sh = floats(blended, [rows, 3], &device);
+    }
+
     /// The RMSprop running averages `[rows, 3]`.
     pub fn rms(&self) -> Tensor<2> {
         self.rms.clone()
@@ -289,6 +298,13 @@ pub fn keep_chroma(style: &[f32], photo: &[f32]) -> Vec<f32> {
             [p[0] + shift, p[1] + shift, p[2] + shift]
         })
         .collect()
+}
+
+/// Degree-0 SH colours `(1 - strength) * photo + strength * style`: a render is
+/// linear in the coefficients along each ray, so every view shows the same
+/// blend of the stylized and the photo renders (up to the display clamp).
+pub fn blend(style: &[f32], photo: &[f32], strength: f32) -> Vec<f32> {
+    style.iter().zip(photo).map(|(s, p)| (1.0 - strength) * p + strength * s).collect()
 }
 
 /// A chunk of rays on the device, ready for both passes of deferred
@@ -544,7 +560,20 @@ mod graph_oracle {
 
 #[cfg(test)]
 mod tests {
-    use super::keep_chroma;
+    use super::{blend, keep_chroma};
+
+    /// Strength 1 keeps the stylization, 0 gives the photo, and between the
+    /// distance to the photo scales with it.
+    #[test]
+    fn blend_moves_from_the_photo_to_the_style_with_the_strength() {
+        let (style, photo) = ([0.9, -0.1, 0.4], [0.1, 0.3, -0.2]);
+        assert_eq!(blend(&style, &photo, 1.0), style);
+        assert_eq!(blend(&style, &photo, 0.0), photo);
+        let half = blend(&style, &photo, 0.5);
+        for c in 0..3 {
+            assert!((half[c] - photo[c] - 0.5 * (style[c] - photo[c])).abs() < 1e-7, "{half:?}");
+        }
+    }
 
     /// The kept colour has the style's luminance and the photo's chroma;
     /// a grey style over a coloured photo keeps the photo's hue.

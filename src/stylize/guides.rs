@@ -92,6 +92,8 @@ pub(crate) fn guides(
         let matched_colour = matches!(colour, Some(ColourSource::Matched));
         let (raw, colour_desc) = tcm::image_features(&st.vgg, vgg_input, &st.ad, &blocks, matched_colour)?;
         let matches = template.map(|t| t.matches(&raw, st.cfg().search_chunk)).unwrap_or_default();
+        let edit_votes =
+            template.filter(|t| t.local).map(|t| t.edit_votes(&raw[0], st.cfg().search_chunk)).unwrap_or_default();
         // The content render through the colour map, once, for whichever of the two uses it.
         let mapped = match (keep_content, colour) {
             (Some(Content::Mapped(map)), _) | (_, Some(ColourSource::Mapped { map, .. })) => {
@@ -111,6 +113,10 @@ pub(crate) fn guides(
                 .map(|m| ColourTargets { weight, ..ColourTargets::from_mapped(&content, m, white, patch, &st.device) }),
             _ => None,
         };
+        let colour = match edit_votes.is_empty() {
+            true => colour,
+            false => colour.map(|c| c.only_edited(&edit_votes, content.width, content.height)),
+        };
         matched += colour.as_ref().map_or(0.0, |c| c.matched_fraction / n as f32);
         let content_features = match keep_content {
             None => Vec::new(),
@@ -122,18 +128,23 @@ pub(crate) fn guides(
         };
         let content =
             content_features.into_iter().map(|features| StoredFeatures::store(features, half_content)).collect();
-        out.push(ViewGuide { content, matches, colour });
+        out.push(ViewGuide { content, matches, edit_votes, colour });
         progress.event(Event::Step { phase: Phase::Guides, done: v + 1, total: n, message: String::new() });
     }
     Ok((out, matched))
 }
 
-/// The TCM template of the references, their content renders from the field as it is now.
+/// The TCM template of the references, their content renders from the
+/// field as it is now (a local edit's: their regions only).
 pub(crate) fn template(st: &StyleStep, styles: &[Image]) -> Result<Template> {
     let pairs: Vec<ReferencePair> = styles
         .iter()
         .enumerate()
-        .map(|(r, s)| ReferencePair { content: st.render_reference(r), style: s.clone() })
+        .map(|(r, s)| {
+            let region = st.regions.as_ref().map(|regions| regions[r].pair_region());
+            ReferencePair { content: st.render_reference(r), style: s.clone(), region }
+                .scaled(st.cfg().controls.stroke_scale)
+        })
         .collect();
     Template::build(&st.vgg, &pairs, &st.ad)
 }

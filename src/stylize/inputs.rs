@@ -120,18 +120,41 @@ fn preflight(job: &StylizeJob, ck: &Checkpoint, dataset: &Dataset) -> Result<[us
     Ok([width, height])
 }
 
-/// The pseudo-rays: R³ on the photoreal field, or the `registration.bin`
-/// of `job.registration` after checking it belongs to this run and case.
+/// R³'s pseudo-rays (`registration_file`), with a warning when Ref-NPR
+/// would get no registered pixel.
 pub(crate) fn registration(
     job: &StylizeJob,
     ck: &Checkpoint,
     dataset: &Dataset,
     case: &ReferenceCase,
+    regions: Option<&[PixelRegion]>,
     warnings: &mut WarningLog,
 ) -> Result<RegistrationFile> {
+    let file = registration_file(job, ck, dataset, case, regions, warnings)?;
+    if job.method == Method::RefNpr && file.views.iter().all(|v| v.registration.pixels.is_empty()) {
+        warnings.push(
+            "R³ registered no training pixel: L_ref uses the reference view only, the rest comes from TCM".into(),
+        );
+    }
+    Ok(file)
+}
+
+/// The pseudo-rays: R³ on the photoreal field (a local edit's: its regions
+/// only), or the `registration.bin` of `job.registration` after checking it
+/// belongs to this run and case.
+fn registration_file(
+    job: &StylizeJob,
+    ck: &Checkpoint,
+    dataset: &Dataset,
+    case: &ReferenceCase,
+    regions: Option<&[PixelRegion]>,
+    warnings: &mut WarningLog,
+) -> Result<RegistrationFile> {
+    let edited: Option<Vec<Vec<bool>>> = regions.map(|r| r.iter().map(|region| region.inside.clone()).collect());
     match &job.registration {
         None => {
-            let (file, report) = register_case(ck, dataset, case, &job.config.register, warnings.progress())?;
+            let params = &job.config.register;
+            let (file, report) = register_case(ck, dataset, case, params, edited.as_deref(), warnings.progress())?;
             warnings.extend_reported(report.warnings);
             Ok(file)
         }
@@ -141,6 +164,13 @@ pub(crate) fn registration(
             // The case's references as they are now, to compare with the file's.
             let (_, references) = lift_references(ck, &Marcher::new(&ck.grid), dataset, case, warnings)?;
             file.check_matches(&PhotoRun::of(ck), dataset, &references, path)?;
+            if regions.is_some() {
+                warnings.push(format!(
+                    "{} was registered with every reference pixel: in this local edit, training rays registered \
+                     to unpainted pixels keep pulling toward the photo (without --registration, only the regions register)",
+                    path.display()
+                ));
+            }
             if file.params != job.config.register {
                 warnings.push(format!(
                     "{} was registered with {:?}, not this config's [register] {:?}: using the file",

@@ -83,7 +83,15 @@ pub(crate) fn fit_colour_map(
     if job.method != Method::RefNpr || !cfg.is_on() {
         return None;
     }
-    let contents: Vec<Image> = (0..styles.len()).map(|r| step.render_reference(r)).collect();
+    // A local edit's map is fitted on its regions: the content outside them
+    // is set to the background, which the fit skips (a reference's unpainted
+    // pixels are the photo, and would pull the map towards no change).
+    let contents: Vec<Image> = (0..styles.len())
+        .map(|r| match &step.regions {
+            Some(regions) => regions[r].outside_filled(&step.render_reference(r), step.background()),
+            None => step.render_reference(r),
+        })
+        .collect();
     let pairs: Vec<(&Image, &Image)> = contents.iter().zip(styles).collect();
     let map = ColourMap::fit(&pairs, cfg, step.background());
     let (explained, explained_on) = match explained_on_content {

@@ -8,21 +8,29 @@
 //!    (closed by a few pixels, so a recolouring that leaves a grey stroke
 //!    grey keeps no hole), or the white of a mask image. A reference
 //!    without `region` edits all of its pixels.
-//! 2. Those pixels become voxels (`edit_region`). A voxel a reference sees
+//! 2. With several references, each one's unpainted pixels whose surface
+//!    another reference paints are set aside (`mark_painted_elsewhere`):
+//!    they show another's object as a photo, not a wish to keep it.
+//!    R³ registers training rays to the regions' pixels only, and the
+//!    colour map is fitted on them.
+//! 3. The pixels become voxels (`edit_region`). A voxel a reference sees
 //!    is edited when more of its compositing weight, over that reference's
 //!    rays, comes from edited pixels than from kept ones (for some
-//!    reference: what one leaves unpainted does not veto another's edit). A voxel no
-//!    reference sees is decided by TCM: every training pixel takes the label
+//!    reference: what one leaves unpainted does not veto another's edit).
+//!    A voxel no reference sees is decided by TCM: every training pixel takes the label
 //!    of the reference position its content features match (relu3, the
-//!    finer block), and the voxel takes the label with more weight, so the
-//!    far side of a painted object follows the object, and the far side of
-//!    a kept one stays.
-//! 3. The optimiser changes only edited voxels (`StyleStep::image_step`'s
+//!    finer block; `Template::edit_votes`), and the voxel takes the label
+//!    with more weight, so the far side of a painted object follows the
+//!    object, and the far side of a kept one stays.
+//! 4. The optimiser changes only edited voxels (`StyleStep::image_step`'s
 //!    gradient is masked), L_ref's reference pixels are the edited ones,
-//!    and the saved field (`compose`) is the photoreal
-//!    checkpoint, every SH band and the far background included, with the
-//!    edited voxels' colour replaced: a ray that crosses no edited voxel
-//!    renders exactly as the photoreal field renders it.
+//!    TCM's template and L_color's reference patches are the regions' only
+//!    (`Template::build`: a reference's unpainted pixels are the photo, and
+//!    would pull a surface another reference paints back to it), and the
+//!    saved field (`compose`) is the photoreal checkpoint, every SH band and
+//!    the far background included, with the edited voxels' colour
+//!    replaced: a ray that crosses no edited voxel renders exactly as the
+//!    photoreal field renders it.
 
 use std::borrow::Cow;
 use std::path::Path;
@@ -37,7 +45,7 @@ use crate::reference::case::{ReferenceCase, RegionSpec, read_style};
 use crate::reference::registration::field_surface;
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
-use crate::stylize::tcm::{FEATURE_BLOCKS, block_size};
+use crate::stylize::tcm::{FEATURE_BLOCKS, PairRegion, block_size};
 use crate::util::image::Image;
 use crate::util::input::InputError;
 use crate::util::tensor::{floats, to_vec};
@@ -56,31 +64,49 @@ pub struct PixelRegion {
     pub height: usize,
     /// Row-major, true where edited.
     pub inside: Vec<bool>,
+    /// Row-major, true where the pixel is outside the region but its
+    /// surface is edited by another reference (`mark_painted_elsewhere`):
+    /// such a pixel says nothing, neither edit nor keep.
+    pub elsewhere: Vec<bool>,
 }
 
 impl PixelRegion {
+    pub fn new(width: usize, height: usize, inside: Vec<bool>) -> Self {
+        Self { width, height, elsewhere: vec![false; inside.len()], inside }
+    }
+
     pub fn everywhere(width: usize, height: usize) -> Self {
-        Self { width, height, inside: vec![true; width * height] }
+        Self::new(width, height, vec![true; width * height])
+    }
+
+    /// What the template takes of this region: its edited pixels, and the
+    /// kept ones (neither inside nor painted elsewhere).
+    pub fn pair_region(&self) -> PairRegion {
+        let kept = self.inside.iter().zip(&self.elsewhere).map(|(i, e)| !i && !e).collect();
+        PairRegion { edited: self.inside.clone(), kept }
+    }
+
+    /// The label of pixel `i` in a vote: edit, keep, or none (painted elsewhere).
+    fn label(&self, i: usize) -> Option<bool> {
+        match (self.inside[i], self.elsewhere[i]) {
+            (true, _) => Some(true),
+            (false, true) => None,
+            (false, false) => Some(false),
+        }
     }
 
     pub fn count(&self) -> usize {
         self.inside.iter().filter(|&&i| i).count()
     }
 
-    /// The fraction of the pixels of the `cell`-th block position (of a
-    /// `[bh, bw]` grid over the view) that are edited.
-    fn block_fraction(&self, [bh, bw]: [usize; 2], cell: usize) -> f32 {
-        let (by, bx) = (cell / bw, cell % bw);
-        let ys = by * self.height / bh..((by + 1) * self.height / bh).max(by * self.height / bh + 1);
-        let xs = bx * self.width / bw..((bx + 1) * self.width / bw).max(bx * self.width / bw + 1);
-        let (mut inside, mut all) = (0, 0);
-        for y in ys.clone() {
-            for x in xs.clone() {
-                all += 1;
-                inside += usize::from(self.inside[y.min(self.height - 1) * self.width + x.min(self.width - 1)]);
-            }
-        }
-        inside as f32 / all.max(1) as f32
+    /// `image` with every pixel outside the region set to `fill`.
+    pub fn outside_filled(&self, image: &Image, fill: [f32; 3]) -> Image {
+        let rgb = image
+            .rgb
+            .chunks_exact(3)
+            .zip(&self.inside)
+            .flat_map(|(p, &inside)| if inside { [p[0], p[1], p[2]] } else { fill });
+        Image::new(self.width, self.height, rgb.collect())
     }
 
     /// `content` with the edited pixels tinted and the rest greyed, for a person to check.
@@ -115,7 +141,7 @@ impl PixelRegion {
                 }
             })
             .collect();
-        Self { width: w, height: h, inside }
+        Self::new(w, h, inside)
     }
 
     /// Closing: dilation, then erosion (fills holes, keeps the outline).
@@ -132,7 +158,7 @@ pub fn difference_region(content: &Image, style: &Image, threshold: f32) -> Pixe
         .zip(style.rgb.chunks_exact(3))
         .map(|(c, s)| (0..3).any(|k| (c[k] - s[k]).abs() > threshold))
         .collect();
-    PixelRegion { width: content.width, height: content.height, inside }.closed(CLOSE_RADIUS)
+    PixelRegion::new(content.width, content.height, inside).closed(CLOSE_RADIUS)
 }
 
 /// A mask image's white pixels (luminance above one half); it must be the view's size.
@@ -147,7 +173,7 @@ pub fn mask_region(path: &Path, width: usize, height: usize) -> Result<PixelRegi
         );
         return Err(InputError::Malformed { path: path.into(), message }.into());
     }
-    Ok(PixelRegion { width, height, inside: img.pixels().map(|p| p[0] > 0.5).collect() })
+    Ok(PixelRegion::new(width, height, img.pixels().map(|p| p[0] > 0.5).collect()))
 }
 
 /// The edited pixels of every reference of a local-edit case (None when
@@ -241,21 +267,55 @@ fn vote(samples: &FrozenSamples, label: impl Fn(usize) -> Option<bool>, edit: &m
     }
 }
 
+/// Per row, whether `region` wins its vote over `samples` (the
+/// reference's rays): more of the row's weight from edited pixels than kept.
+fn edited_rows(num_rows: usize, samples: &FrozenSamples, region: &PixelRegion) -> Vec<bool> {
+    let (mut edit, mut keep) = (vec![0.0f32; num_rows], vec![0.0f32; num_rows]);
+    vote(samples, |ray| Some(region.inside[ray]), &mut edit, &mut keep);
+    edit.iter().zip(&keep).map(|(e, k)| e + k > MIN_WEIGHT && e > k).collect()
+}
+
+/// Marks, in each reference, the pixels outside its region whose surface
+/// another reference paints (more than half of the ray's compositing weight
+/// on voxels that reference's region wins). With several references each
+/// painting its own object, a reference's unpainted pixels show the other
+/// objects as photos; they are not a wish to keep those surfaces.
+pub fn mark_painted_elsewhere(num_rows: usize, references: &[FrozenSamples], regions: &mut [PixelRegion]) {
+    let edited: Vec<Vec<bool>> = references.iter().zip(&*regions).map(|(s, r)| edited_rows(num_rows, s, r)).collect();
+    for (r, (samples, region)) in references.iter().zip(regions.iter_mut()).enumerate() {
+        let by_others = |row: usize| edited.iter().enumerate().any(|(o, e)| o != r && e[row]);
+        for ray in 0..samples.num_rays {
+            if region.inside[ray] {
+                continue;
+            }
+            let (mut others, mut all) = (0.0f32, 0.0f32);
+            for s in samples.ray_samples(ray) {
+                for (row, cw) in s.rows.iter().zip(s.colour_weights).filter(|(row, cw)| **row >= 0 && *cw > 0.0) {
+                    let w = samples.weight[s.index] * cw;
+                    all += w;
+                    others += if by_others(*row as usize) { w } else { 0.0 };
+                }
+            }
+            region.elsewhere[ray] = all > MIN_WEIGHT && others > 0.5 * all;
+        }
+    }
+}
+
 /// The voxels of a local edit. `references` are the references' sample
 /// lists and their regions; `views` are the training views' lists, each
-/// with its relu3 TCM matches (indices into the references' relu3
-/// positions, one reference after another) and its size.
+/// with its relu3 positions' TCM votes (`Template::edit_votes`: whether the
+/// position looks like an edited reference position) and its size.
 pub fn edit_region(
     num_rows: usize,
     references: &[(FrozenSamples, &PixelRegion)],
-    views: &mut dyn Iterator<Item = (Cow<'_, FrozenSamples>, Vec<i32>, [usize; 2])>,
+    views: &mut dyn Iterator<Item = (Cow<'_, FrozenSamples>, &[bool], [usize; 2])>,
 ) -> Result<EditRegion> {
     // Per row: seen by some reference, and edited by one (each reference
     // decides for itself: what one leaves unpainted does not veto another's edit).
     let (mut seen_by_reference, mut edited) = (vec![false; num_rows], vec![false; num_rows]);
     for (samples, region) in references {
         let (mut edit, mut keep) = (vec![0.0f32; num_rows], vec![0.0f32; num_rows]);
-        vote(samples, |ray| Some(region.inside[ray]), &mut edit, &mut keep);
+        vote(samples, |ray| region.label(ray), &mut edit, &mut keep);
         for row in 0..num_rows {
             if edit[row] + keep[row] > MIN_WEIGHT {
                 seen_by_reference[row] = true;
@@ -263,22 +323,13 @@ pub fn edit_region(
             }
         }
     }
-    // Per relu3 position of the references, one after another: edited or not.
-    let template: Vec<bool> = references
-        .iter()
-        .flat_map(|(_, r)| {
-            let size = block_size(FEATURE_BLOCKS[0], r.height, r.width);
-            (0..size[0] * size[1]).map(move |cell| r.block_fraction(size, cell) > 0.5)
-        })
-        .collect();
     let (mut tcm_edit, mut tcm_keep) = (vec![0.0f32; num_rows], vec![0.0f32; num_rows]);
-    for (samples, matches, [w, h]) in views {
+    for (samples, votes, [w, h]) in views {
         let [bh, bw] = block_size(FEATURE_BLOCKS[0], h, w);
-        ensure!(matches.len() == bh * bw, "TCM matches for {bh}x{bw} positions, got {}", matches.len());
+        ensure!(votes.len() == bh * bw, "TCM votes for {bh}x{bw} positions, got {}", votes.len());
         let label = |ray: usize| {
             let (x, y) = (ray % w, ray / w);
-            let cell = (y * bh / h).min(bh - 1) * bw + (x * bw / w).min(bw - 1);
-            template.get(matches[cell] as usize).copied()
+            Some(votes[(y * bh / h).min(bh - 1) * bw + (x * bw / w).min(bw - 1)])
         };
         vote(&samples, label, &mut tcm_edit, &mut tcm_keep);
     }
@@ -340,7 +391,7 @@ mod tests {
     use super::*;
 
     fn region(w: usize, h: usize, f: impl Fn(usize, usize) -> bool) -> PixelRegion {
-        PixelRegion { width: w, height: h, inside: (0..w * h).map(|i| f(i % w, i / w)).collect() }
+        PixelRegion::new(w, h, (0..w * h).map(|i| f(i % w, i / w)).collect())
     }
 
     #[test]
@@ -360,15 +411,6 @@ mod tests {
         let r = difference_region(&content, &style, 0.1);
         assert_eq!(r, region(w, h, |x, y| (4..12).contains(&x) && (3..9).contains(&y)), "square, hole filled");
         assert_eq!(difference_region(&content, &content, 0.1).count(), 0);
-    }
-
-    #[test]
-    fn block_fractions_follow_the_pixels() {
-        let r = region(8, 8, |x, _| x < 4);
-        assert_eq!(r.block_fraction([2, 2], 0), 1.0);
-        assert_eq!(r.block_fraction([2, 2], 1), 0.0);
-        assert_eq!(r.block_fraction([2, 2], 2), 1.0);
-        assert_eq!(r.block_fraction([1, 1], 0), 0.5);
     }
 
     #[test]

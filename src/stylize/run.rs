@@ -55,33 +55,30 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     }));
     let mut phases = PhaseLog::default();
     let mut warnings = WarningLog::new(progress);
-    let registration = phases.run("registration", 0, || registration(job, &ck, &dataset, &case, &mut warnings))?;
+    let registration =
+        phases.run("registration", 0, || registration(job, &ck, &dataset, &case, regions.as_deref(), &mut warnings))?;
     let registered_fraction = registration.fraction_overall();
-    if job.method == Method::RefNpr && registration.views.iter().all(|v| v.registration.pixels.is_empty()) {
-        warnings.push(
-            "R³ registered no training pixel: L_ref uses the reference view only, the rest comes from TCM".into(),
-        );
-    }
     let (styles, style_colours, colour_transfer) =
         style_side(job, &case, &dataset, &registration, ck.meta.background, &mut warnings)?;
     let photo_meta = ck.meta.clone();
     let mut st =
         Stylization::new(job, StyleStep::new(job, &dataset, ck.grid, &photo_meta, registration), colour_transfer);
     let start = st.refit_or_resume(resumed.as_ref(), &mut phases, progress)?;
-    if job.method == Method::RefNpr && regions.is_none() {
+    st.step.set_regions(regions);
+    if job.method == Method::RefNpr && st.step.regions.is_none() {
         st.step.stylize_far(progress);
     }
     let colour = job.method == Method::RefNpr && job.config.ablation.use_colour_loss && case.color_pre;
     st.colour_map = fit_colour_map(job, &st.step, &styles, explained_on_content, progress);
     let (guidance, colour_matched) = st.content_phase(&styles, colour, image_size, &mut phases, progress)?;
-    let local_edit = regions.as_deref().map(|r| st.local_edit(r, &guidance, progress)).transpose()?;
+    let local_edit = st.local_edit(&guidance, progress)?;
     st.recolour_field();
     let sample_cache = st.step.samples.report(job.config.sample_cache_mb);
     if let Some(state) = resumed {
         st.restore(state);
     }
     st.image_epochs(&styles, guidance, start, &mut phases, progress)?;
-    st.preserve_colour();
+    st.apply_controls();
     let post_colour_transfer = st.post_colour_transfer(style_colours, progress)?;
     let steps = st.curve.iter().filter(|p| p.phase != StepKind::Refit).count();
     save_outputs(&st.step, steps, &photo_meta, job, started)?;
@@ -230,23 +227,26 @@ impl<'a> Stylization<'a> {
         }
     }
 
-    /// `[controls] preserve_colour`: the refit photo's chroma under the stylized luminance.
-    fn preserve_colour(&mut self) {
-        if self.job.config.controls.preserve_colour {
+    /// `[controls]`: `preserve_colour` (the refit photo's chroma under the
+    /// stylized luminance), then `style_strength` (the blend with the refit photo).
+    fn apply_controls(&mut self) {
+        let controls = &self.job.config.controls;
+        if controls.preserve_colour {
             self.step.field.keep_chroma_of(&self.refit_sh);
+        }
+        if controls.style_strength != 1.0 {
+            self.step.field.blend_with(&self.refit_sh, controls.style_strength);
         }
     }
 
     /// A local edit: its voxels (from then on the only ones the optimiser
     /// changes), and each reference's region drawn over its render as
     /// `region_R.png`.
-    fn local_edit(
-        &mut self,
-        regions: &[PixelRegion],
-        guidance: &Guidance,
-        progress: &dyn Progress,
-    ) -> Result<LocalEditReport> {
-        let edit = self.step.edit_region(regions, &guidance.guides)?;
+    fn local_edit(&mut self, guidance: &Guidance, progress: &dyn Progress) -> Result<Option<LocalEditReport>> {
+        let Some(regions) = self.step.regions.take() else {
+            return Ok(None);
+        };
+        let edit = self.step.edit_region(&regions, &guidance.guides)?;
         self.step.samples.keep_reference_pixels(|r, i| regions[r].inside[i]);
         for (r, region) in regions.iter().enumerate() {
             region.overlay(&self.step.render_reference(r)).save_png(&self.job.out.join(format!("region_{r}.png")))?;
@@ -261,8 +261,8 @@ impl<'a> Stylization<'a> {
             "local edit: {} voxels a reference sees and {} matched by TCM (of {}); the rest keeps the photoreal field",
             report.seen_voxels, report.matched_voxels, report.voxels
         ));
-        self.step.edit = Some(edit);
-        Ok(report)
+        (self.step.edit, self.step.regions) = (Some(edit), Some(regions));
+        Ok(Some(report))
     }
 
     /// The content phase: the sample cache, then the first guides; writes

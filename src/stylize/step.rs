@@ -31,7 +31,7 @@ use crate::stylize::field::{
     render_chunks, render_gathered,
 };
 use crate::stylize::losses;
-use crate::stylize::region::{EditRegion, PixelRegion, edit_region};
+use crate::stylize::region::{EditRegion, PixelRegion, edit_region, mark_painted_elsewhere};
 use crate::stylize::samples::{PseudoRays, SampleCache};
 use crate::stylize::styles::colour_stats;
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, StoredFeatures, Template};
@@ -40,7 +40,7 @@ use crate::util::image::Image;
 use crate::util::profile::{PartTime, StepProfile};
 use crate::util::progress::{Event, Progress};
 use crate::util::rng::{Stream, step_rng};
-use crate::util::tensor::{floats, scalar, to_ints, to_vec};
+use crate::util::tensor::{floats, scalar, to_vec};
 use crate::vgg::{Vgg16, VggLayer};
 
 /// The interleaved `[pixels, 3]` gradient of an image loss (planar `[1, 3, H, W]` gradient in).
@@ -76,6 +76,9 @@ pub struct ViewGuide {
     pub(crate) content: Vec<StoredFeatures>,
     /// TCM matches per block (Ref-NPR).
     pub(crate) matches: Vec<Tensor<1, Int>>,
+    /// A local edit: per relu3 position, whether it looks like an edited
+    /// reference position (`Template::edit_votes`; empty otherwise).
+    pub(crate) edit_votes: Vec<bool>,
     pub(crate) colour: Option<ColourTargets>,
 }
 
@@ -166,6 +169,8 @@ pub struct StyleStep<'a> {
     profile: StepProfile,
     /// A local edit's voxels: the only rows the optimiser changes (all when None).
     pub(crate) edit: Option<EditRegion>,
+    /// A local edit's regions, one per reference (the template keeps only their positions).
+    pub(crate) regions: Option<Vec<PixelRegion>>,
 }
 
 impl<'a> StyleStep<'a> {
@@ -198,6 +203,7 @@ impl<'a> StyleStep<'a> {
             optimiser_steps: 0,
             profile,
             edit: None,
+            regions: None,
         }
     }
 
@@ -464,6 +470,16 @@ impl<'a> StyleStep<'a> {
         Ok(tf)
     }
 
+    /// A local edit's regions, one per reference, with the pixels each
+    /// leaves unpainted but another paints marked (`mark_painted_elsewhere`).
+    pub fn set_regions(&mut self, regions: Option<Vec<PixelRegion>>) {
+        self.regions = regions.map(|mut regions| {
+            let references: Vec<_> = (0..regions.len()).map(|r| self.samples.reference_samples(r)).collect();
+            mark_painted_elsewhere(self.field.grid.num_rows(), &references, &mut regions);
+            regions
+        });
+    }
+
     /// A local edit's voxels (`stylize::region`): the references' rays by
     /// their regions, and the training views' rays by their relu3 TCM
     /// matches in `guides` (Ref-NPR; ARF has none, and decides only what
@@ -471,10 +487,10 @@ impl<'a> StyleStep<'a> {
     pub fn edit_region(&self, regions: &[PixelRegion], guides: &[ViewGuide]) -> Result<EditRegion> {
         let references: Vec<_> =
             regions.iter().enumerate().map(|(r, region)| (self.samples.reference_samples(r), region)).collect();
-        let mut views = guides.iter().enumerate().filter(|(_, g)| !g.matches.is_empty()).map(|(v, g)| {
+        let mut views = guides.iter().enumerate().filter(|(_, g)| !g.edit_votes.is_empty()).map(|(v, g)| {
             let k = self.dataset.train[v].camera.intrinsics;
             let lists = self.samples.view(&self.field.grid, v);
-            (lists, to_ints(g.matches[0].clone()), [k.width as usize, k.height as usize])
+            (lists, &g.edit_votes[..], [k.width as usize, k.height as usize])
         });
         edit_region(self.field.grid.num_rows(), &references, &mut views)
     }

@@ -117,43 +117,178 @@ pub fn render_blocks(maps: &FeatureMaps, blocks: &[&[VggLayer]], height: usize, 
 
 /// The reference side of TCM.
 pub struct Template {
-    /// Per block: normalised content descriptors of every reference position.
+    /// Per block: normalised content descriptors of every reference position
+    /// (in a local edit, of the edited positions only).
     pub keys: Vec<Tensor<2>>,
     /// Per block: the style image's raw features at the same positions.
     pub values: Vec<Tensor<2>>,
     /// Normalised relu5 descriptors of the references' content renders.
     pub colour_keys: Tensor<2>,
-    /// The style images' patch mean colours at the same positions.
+    /// The style images' patch mean colours at the same positions (in a
+    /// local edit, the mean over the patch's edited pixels).
     pub colour_values: Tensor<2>,
+    /// Whether the references carry regions (a local edit).
+    pub local: bool,
+    /// A local edit: the normalised relu3 content descriptors of the
+    /// reference positions at least half kept (`PairRegion::kept`; None when
+    /// there are none).
+    pub kept_keys: Option<Tensor<2>>,
 }
 
-/// A (content, style) pair of one reference view.
+/// A (content, style) pair of one reference view and, in a local edit, its region.
 pub struct ReferencePair {
     pub content: Image,
     pub style: Image,
+    pub region: Option<PairRegion>,
+}
+
+/// A reference's pixels in a local edit (row-major, the view's size): those
+/// it edits, and those it keeps (neither: unpainted here but painted by
+/// another reference, which say nothing).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PairRegion {
+    pub edited: Vec<bool>,
+    pub kept: Vec<bool>,
+}
+
+impl ReferencePair {
+    /// The pair resized by `scale` (`[controls] stroke_scale`), no side
+    /// below VGG16's smallest: the template then holds the painting's
+    /// pattern `scale` times as large, in pixels, as the views it guides.
+    pub fn scaled(self, scale: f32) -> Self {
+        if scale == 1.0 {
+            return self;
+        }
+        let (w, h) = (self.content.width, self.content.height);
+        let side = |n: usize| ((n as f32 * scale).round() as usize).max(crate::vgg::MIN_SIDE);
+        let (sw, sh) = (side(w), side(h));
+        let resize = |mask: &[bool]| -> Vec<bool> {
+            let at = |i: usize, n: usize, s: usize| (((i as f32 + 0.5) * n as f32 / s as f32) as usize).min(n - 1);
+            (0..sw * sh).map(|i| mask[at(i / sw, h, sh) * w + at(i % sw, w, sw)]).collect()
+        };
+        let region = self.region.map(|r| PairRegion { edited: resize(&r.edited), kept: resize(&r.kept) });
+        Self { content: self.content.resized(sw, sh), style: self.style.resized(sw, sh), region }
+    }
+}
+
+/// Per cell of a `[rows, cols]` feature grid of `stride` pixels per cell
+/// over an image `width` pixels wide, the fraction of the pixels under it
+/// that `edited` (row-major) marks.
+pub fn cell_fractions(edited: &[bool], width: usize, [rows, cols]: [usize; 2], stride: usize) -> Vec<f32> {
+    (0..rows * cols)
+        .map(|cell| {
+            let (y0, x0) = (cell / cols * stride, cell % cols * stride);
+            let pixels = (y0..y0 + stride).flat_map(|y| (x0..x0 + stride).map(move |x| y * width + x));
+            pixels.filter(|&i| edited[i]).count() as f32 / (stride * stride) as f32
+        })
+        .collect()
+}
+
+/// The cells a region's template keeps: those at least half edited or,
+/// where none is (a region smaller than one cell), every cell it touches.
+pub fn edited_cells(fractions: &[f32]) -> Vec<usize> {
+    let half: Vec<usize> = (0..fractions.len()).filter(|&c| fractions[c] >= 0.5).collect();
+    match half.is_empty() {
+        true => (0..fractions.len()).filter(|&c| fractions[c] > 0.0).collect(),
+        false => half,
+    }
+}
+
+/// Per `patch` x `patch` block of `image` (the grid `patch_means` pools),
+/// the mean colour of the pixels `edited` marks, for the blocks in `cells`.
+fn edited_patch_means(image: &Image, edited: &[bool], patch: usize, cells: &[usize]) -> Vec<f32> {
+    let cols = image.width / patch;
+    let mut out = Vec::with_capacity(cells.len() * 3);
+    for &cell in cells {
+        let (y0, x0) = (cell / cols * patch, cell % cols * patch);
+        let (mut sum, mut n) = ([0.0f32; 3], 0usize);
+        for i in (y0..y0 + patch).flat_map(|y| (x0..x0 + patch).map(move |x| y * image.width + x)) {
+            if edited[i] {
+                (0..3).for_each(|c| sum[c] += image.rgb[i * 3 + c]);
+                n += 1;
+            }
+        }
+        out.extend(sum.map(|s| s / n.max(1) as f32));
+    }
+    out
+}
+
+/// `rows` of `x` (all of them when `rows` is None).
+fn keep_rows(x: Tensor<2>, rows: Option<&[usize]>) -> Tensor<2> {
+    match rows {
+        None => x,
+        Some(r) => {
+            let device = x.device();
+            x.select(0, indices(r.iter().map(|&i| i as i32).collect(), &device))
+        }
+    }
 }
 
 impl Template {
+    /// The template of `pairs`. A pair with a region contributes only the
+    /// positions its edited pixels cover (`edited_cells`), so that TCM and
+    /// L_color carry only what was painted: in a local edit a reference's
+    /// unpainted pixels are the photo, and matching them would pull a
+    /// surface another reference paints back to its photo colours.
     pub fn build(vgg: &Vgg16, pairs: &[ReferencePair], device: &Device) -> Result<Self> {
         let nb = FEATURE_BLOCKS.len();
         let (mut keys, mut values) = (vec![Vec::new(); nb], vec![Vec::new(); nb]);
-        let (mut ckeys, mut cvalues) = (Vec::new(), Vec::new());
+        let (mut ckeys, mut cvalues, mut kept) = (Vec::new(), Vec::new(), Vec::new());
         for p in pairs {
+            let (w, h) = (p.content.width, p.content.height);
             let (content, colour) = image_features(vgg, &p.content, device, &FEATURE_BLOCKS, true)?;
             let (style, _) = image_features(vgg, &p.style, device, &FEATURE_BLOCKS, false)?;
             for b in 0..nb {
-                keys[b].push(crate::vgg::features::normalise_rows(content[b].clone()));
-                values[b].push(style[b].clone());
+                let key = crate::vgg::features::normalise_rows(content[b].clone());
+                let (grid, stride) = (block_size(FEATURE_BLOCKS[b], h, w), FEATURE_BLOCKS[b][0].stride());
+                let cells = p.region.as_ref().map(|r| edited_cells(&cell_fractions(&r.edited, w, grid, stride)));
+                if let (0, Some(region), Some(cells)) = (b, &p.region, &cells) {
+                    let fractions = cell_fractions(&region.kept, w, grid, stride);
+                    let kept_cells: Vec<usize> =
+                        (0..fractions.len()).filter(|c| fractions[*c] >= 0.5 && !cells.contains(c)).collect();
+                    if !kept_cells.is_empty() {
+                        kept.push(keep_rows(key.clone(), Some(&kept_cells)));
+                    }
+                }
+                keys[b].push(keep_rows(key, cells.as_deref()));
+                values[b].push(keep_rows(style[b].clone(), cells.as_deref()));
             }
-            ckeys.push(colour.expect("colour descriptors requested"));
-            cvalues.push(patch_means(p.style.tensor(device), COLOUR_PATCH));
+            let colour = colour.expect("colour descriptors requested");
+            match p.region.as_ref().map(|r| &r.edited) {
+                None => {
+                    ckeys.push(colour);
+                    cvalues.push(patch_means(p.style.tensor(device), COLOUR_PATCH));
+                }
+                Some(edited) => {
+                    let grid = [h / COLOUR_PATCH, w / COLOUR_PATCH];
+                    let cells = edited_cells(&cell_fractions(edited, w, grid, COLOUR_PATCH));
+                    let means = edited_patch_means(&p.style, edited, COLOUR_PATCH, &cells);
+                    ckeys.push(keep_rows(colour, Some(&cells)));
+                    cvalues.push(floats(means, [cells.len(), 3], device));
+                }
+            }
         }
         Ok(Self {
             keys: keys.into_iter().map(|k| Tensor::cat(k, 0)).collect(),
             values: values.into_iter().map(|v| Tensor::cat(v, 0)).collect(),
             colour_keys: Tensor::cat(ckeys, 0),
             colour_values: Tensor::cat(cvalues, 0),
+            local: pairs.iter().any(|p| p.region.is_some()),
+            kept_keys: (!kept.is_empty()).then(|| Tensor::cat(kept, 0)),
         })
+    }
+
+    /// A local edit's vote of each relu3 position of a view (its raw
+    /// content features): whether the nearest reference position (cosine)
+    /// is an edited one rather than a kept one.
+    pub fn edit_votes(&self, relu3: &Tensor<2>, chunk: usize) -> Vec<bool> {
+        let query = crate::vgg::features::normalise_rows(relu3.clone());
+        let Some(kept) = &self.kept_keys else {
+            return vec![true; query.dims()[0]];
+        };
+        let (_, edited) = nearest_by_dot(query.clone(), self.keys[0].clone(), chunk);
+        let (_, kept) = nearest_by_dot(query, kept.clone(), chunk);
+        edited.iter().zip(&kept).map(|(e, k)| e >= k).collect()
     }
 
     /// Eq. 7 for every position of each block: the index of the nearest
@@ -279,6 +414,28 @@ impl ColourTargets {
         }
     }
 
+    /// A local edit: supervises only the patches at least half of whose
+    /// pixels TCM votes edited (`votes`, per relu3 position of a `width` x
+    /// `height` view): a kept surface's patch target would push the edited
+    /// voxels beside it to make up the difference.
+    pub fn only_edited(mut self, votes: &[bool], width: usize, height: usize) -> Self {
+        let [rows, cols] = block_size(FEATURE_BLOCKS[0], height, width);
+        let stride = FEATURE_BLOCKS[0][0].stride();
+        let edited: Vec<bool> = (0..width * height)
+            .map(|i| votes[((i / width) / stride).min(rows - 1) * cols + ((i % width) / stride).min(cols - 1)])
+            .collect();
+        let grid = [height / self.patch, width / self.patch];
+        let fractions = cell_fractions(&edited, width, grid, self.patch);
+        let mut mask = to_vec(self.mask.clone());
+        for (m, f) in mask.iter_mut().zip(&fractions) {
+            *m *= if *f >= 0.5 { 1.0 } else { 0.0 };
+        }
+        let n = mask.len();
+        self.matched_fraction = mask.iter().filter(|&&m| m > 0.0).count() as f32 / n.max(1) as f32;
+        self.mask = floats(mask, [n, 1], &self.mask.device());
+        self
+    }
+
     pub fn to_record(&self, view: usize, width: usize, height: usize) -> ViewColourTargets {
         // The relu5 grid is floor(size / 16) per axis, as `patch_means` is for any patch.
         let [rows, cols] = [height / self.patch, width / self.patch];
@@ -305,6 +462,48 @@ impl ColourTargets {
 mod tests {
     use super::*;
     use crate::test_support::device;
+
+    /// An 8x8 view whose left three columns are edited, on a 2x2 grid of
+    /// 4-pixel cells: the left cells three quarters edited, the right ones
+    /// not; a region inside one cell keeps that cell.
+    #[test]
+    fn a_template_keeps_the_cells_its_region_covers() {
+        let edited: Vec<bool> = (0..64).map(|i| i % 8 < 3).collect();
+        assert_eq!(cell_fractions(&edited, 8, [2, 2], 4), vec![0.75, 0.0, 0.75, 0.0]);
+        assert_eq!(edited_cells(&[0.75, 0.0, 0.75, 0.0]), vec![0, 2]);
+        let speck: Vec<bool> = (0..64).map(|i| i == 8 * 5 + 6).collect();
+        let fractions = cell_fractions(&speck, 8, [2, 2], 4);
+        assert_eq!(fractions, vec![0.0, 0.0, 0.0, 1.0 / 16.0]);
+        assert_eq!(edited_cells(&fractions), vec![3], "a region smaller than a cell keeps the cell it touches");
+    }
+
+    /// `stroke_scale` resizes both images and the region with them (the
+    /// region's left half stays its left half), never below VGG16's smallest side.
+    #[test]
+    fn a_scaled_pair_keeps_its_region_where_it_was() {
+        let image = |w: usize, h: usize| Image::new(w, h, vec![0.5; w * h * 3]);
+        let edited: Vec<bool> = (0..64 * 48).map(|i| i % 64 < 32).collect();
+        let kept = edited.iter().map(|e| !e).collect();
+        let region = Some(PairRegion { edited, kept });
+        let pair = ReferencePair { content: image(64, 48), style: image(64, 48), region };
+        let big = pair.scaled(2.0);
+        assert_eq!([big.content.width, big.content.height, big.style.width], [128, 96, 128]);
+        let region = big.region.as_ref().unwrap();
+        assert!((0..128 * 96).all(|i| region.edited[i] == (i % 128 < 64)), "the region follows the resize");
+        assert!((0..128 * 96).all(|i| region.kept[i] != region.edited[i]));
+        let small = big.scaled(0.25);
+        assert_eq!([small.content.width, small.content.height], [32, 32], "clamped to crate::vgg::MIN_SIDE");
+    }
+
+    /// The colour template of a region takes each patch's mean over its
+    /// edited pixels only: the painted colour, not its mix with the photo.
+    #[test]
+    fn a_regions_patch_colour_is_the_mean_of_its_edited_pixels() {
+        let rgb: Vec<f32> = (0..64).flat_map(|i| if i % 8 < 2 { [1.0, 0.0, 0.0] } else { [0.0, 0.0, 1.0] }).collect();
+        let image = Image::new(8, 8, rgb);
+        let edited: Vec<bool> = (0..64).map(|i| i % 8 < 2).collect();
+        assert_eq!(edited_patch_means(&image, &edited, 4, &[0, 2]), vec![1.0, 0.0, 0.0, 1.0, 0.0, 0.0]);
+    }
 
     /// The colour map's targets at `target_patch` 4 on an 8x8 view: four
     /// patches, each the mean of its block of the mapped render, the white

@@ -26,12 +26,6 @@ pub fn to_vec<const D: usize>(t: Tensor<D>) -> Vec<f32> {
     t.into_data().convert::<f32>().try_into_vec::<f32>().expect("float tensor data converts to f32")
 }
 
-/// An index tensor's values.
-pub fn to_ints(t: Tensor<1, Int>) -> Vec<i32> {
-    transfer::record_read(t.shape().num_elements() * 4);
-    t.into_data().convert::<i32>().try_into_vec::<i32>().expect("int tensor data converts to i32")
-}
-
 /// A scalar float tensor's value.
 pub fn scalar(t: Tensor<1>) -> f32 {
     to_vec(t)[0]
