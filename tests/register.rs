@@ -170,12 +170,9 @@ fn multi_reference_both_contribute() {
     assert!(both.correct as f32 / both.registered as f32 >= 0.98);
 }
 
-/// The angle test: a stored point seen along +x matches a query along a
-/// direction with cosine 0.9; cosine 0.5 only under a 0.3 threshold; -0.8 never.
-#[test]
-fn angle_threshold_rejects_what_it_should() {
-    let point = Vec3::new(0.1, 0.2, 0.3);
-    let reference = Reference {
+/// A reference of one pixel that sees `point` along +x in `colour`.
+fn one_point_reference(point: Vec3, colour: [f32; 3]) -> Reference {
+    Reference {
         surface: Surface {
             width: 1,
             height: 1,
@@ -183,8 +180,16 @@ fn angle_threshold_rejects_what_it_should() {
             dirs: vec![Vec3::X],
             rays: vec![(point - Vec3::X, Vec3::X)],
         },
-        colours: vec![[1.0, 0.0, 0.0]],
-    };
+        colours: vec![colour],
+    }
+}
+
+/// The angle test: a stored point seen along +x matches a query along a
+/// direction with cosine 0.9; cosine 0.5 only under a 0.3 threshold; -0.8 never.
+#[test]
+fn angle_threshold_rejects_what_it_should() {
+    let point = Vec3::new(0.1, 0.2, 0.3);
+    let reference = one_point_reference(point, [1.0, 0.0, 0.0]);
     let dirs: Vec<Vec3> = [0.9f32, 0.5, -0.8].iter().map(|&c| Vec3::new(c, (1.0 - c * c).sqrt(), 0.0)).collect();
     let view =
         Surface { width: 3, height: 1, points: vec![Some(point); 3], rays: vec![(Vec3::ZERO, Vec3::X); 3], dirs };
@@ -203,16 +208,7 @@ fn angle_threshold_rejects_what_it_should() {
 #[test]
 fn unpainted_reference_pixels_register_nothing() {
     let point = Vec3::new(0.1, 0.2, 0.3);
-    let one = |colour: [f32; 3]| Reference {
-        surface: Surface {
-            width: 1,
-            height: 1,
-            points: vec![Some(point)],
-            dirs: vec![Vec3::X],
-            rays: vec![(point - Vec3::X, Vec3::X)],
-        },
-        colours: vec![colour],
-    };
+    let one = |colour: [f32; 3]| one_point_reference(point, colour);
     let view = Surface {
         width: 1,
         height: 1,

@@ -440,11 +440,6 @@ pub struct ControlsConfig {
     /// after the image epochs each voxel keeps the stylized luminance and
     /// takes the refit photo colour's chroma (`--preserve-colour`).
     pub preserve_colour: bool,
-    /// The painting's pattern larger (> 1) or smaller (< 1) on the surfaces
-    /// TCM carries it to: the template's features are taken of the
-    /// references resized by this factor, so a stroke n pixels wide is
-    /// matched as one n x stroke_scale wide (`--stroke-scale`; 1: the paper).
-    pub stroke_scale: f32,
     /// How much of the stylization the field keeps: 1 all of it, 0 the refit
     /// photo; between, each voxel's colour is the blend (`--style-strength`).
     pub style_strength: f32,
@@ -452,17 +447,12 @@ pub struct ControlsConfig {
 
 impl Default for ControlsConfig {
     fn default() -> Self {
-        Self { preserve_colour: false, stroke_scale: 1.0, style_strength: 1.0 }
+        Self { preserve_colour: false, style_strength: 1.0 }
     }
 }
 
 impl ControlsConfig {
     pub fn validate(&self) -> Result<()> {
-        ensure!(
-            (0.25..=4.0).contains(&self.stroke_scale),
-            "controls.stroke_scale must be in [0.25, 4], got {}",
-            self.stroke_scale
-        );
         ensure!(
             (0.0..=1.0).contains(&self.style_strength),
             "controls.style_strength must be in [0, 1], got {}",
@@ -637,9 +627,7 @@ mod tests {
     #[test]
     fn controls_out_of_range_are_refused_naming_the_key() {
         let mut config = StylizeConfig::default();
-        assert_eq!((config.controls.stroke_scale, config.controls.style_strength), (1.0, 1.0));
-        config.controls.stroke_scale = 0.0;
-        assert!(config.validate().unwrap_err().to_string().contains("controls.stroke_scale"));
+        assert_eq!(config.controls.style_strength, 1.0);
         config.controls = ControlsConfig { style_strength: 1.5, ..ControlsConfig::default() };
         assert!(config.validate().unwrap_err().to_string().contains("controls.style_strength"));
     }

@@ -143,7 +143,6 @@ pub(crate) fn template(st: &StyleStep, styles: &[Image]) -> Result<Template> {
         .map(|(r, s)| {
             let region = st.regions.as_ref().map(|regions| regions[r].pair_region());
             ReferencePair { content: st.render_reference(r), style: s.clone(), region }
-                .scaled(st.cfg().controls.stroke_scale)
         })
         .collect();
     Template::build(&st.vgg, &pairs, &st.ad)

@@ -120,8 +120,9 @@ fn preflight(job: &StylizeJob, ck: &Checkpoint, dataset: &Dataset) -> Result<[us
     Ok([width, height])
 }
 
-/// R³'s pseudo-rays (`registration_file`), with a warning when Ref-NPR
-/// would get no registered pixel.
+/// The pseudo-rays: R³ on the photoreal field (a local edit's: its regions
+/// only), or the `registration.bin` of `job.registration` after checking it
+/// belongs to this run and case; a warning when Ref-NPR gets no registered pixel.
 pub(crate) fn registration(
     job: &StylizeJob,
     ck: &Checkpoint,
@@ -130,33 +131,13 @@ pub(crate) fn registration(
     regions: Option<&[PixelRegion]>,
     warnings: &mut WarningLog,
 ) -> Result<RegistrationFile> {
-    let file = registration_file(job, ck, dataset, case, regions, warnings)?;
-    if job.method == Method::RefNpr && file.views.iter().all(|v| v.registration.pixels.is_empty()) {
-        warnings.push(
-            "R³ registered no training pixel: L_ref uses the reference view only, the rest comes from TCM".into(),
-        );
-    }
-    Ok(file)
-}
-
-/// The pseudo-rays: R³ on the photoreal field (a local edit's: its regions
-/// only), or the `registration.bin` of `job.registration` after checking it
-/// belongs to this run and case.
-fn registration_file(
-    job: &StylizeJob,
-    ck: &Checkpoint,
-    dataset: &Dataset,
-    case: &ReferenceCase,
-    regions: Option<&[PixelRegion]>,
-    warnings: &mut WarningLog,
-) -> Result<RegistrationFile> {
     let edited: Option<Vec<Vec<bool>>> = regions.map(|r| r.iter().map(|region| region.inside.clone()).collect());
-    match &job.registration {
+    let file = match &job.registration {
         None => {
             let params = &job.config.register;
             let (file, report) = register_case(ck, dataset, case, params, edited.as_deref(), warnings.progress())?;
             warnings.extend_reported(report.warnings);
-            Ok(file)
+            file
         }
         Some(given) => {
             let path = &RegistrationFile::resolve(given);
@@ -179,9 +160,15 @@ fn registration_file(
                     job.config.register
                 ));
             }
-            Ok(file)
+            file
         }
+    };
+    if job.method == Method::RefNpr && file.views.iter().all(|v| v.registration.pixels.is_empty()) {
+        warnings.push(
+            "R³ registered no training pixel: L_ref uses the reference view only, the rest comes from TCM".into(),
+        );
     }
+    Ok(file)
 }
 
 /// Bytes the per-view feature caches need (raw content features of the

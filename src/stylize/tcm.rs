@@ -151,26 +151,6 @@ pub struct PairRegion {
     pub kept: Vec<bool>,
 }
 
-impl ReferencePair {
-    /// The pair resized by `scale` (`[controls] stroke_scale`), no side
-    /// below VGG16's smallest: the template then holds the painting's
-    /// pattern `scale` times as large, in pixels, as the views it guides.
-    pub fn scaled(self, scale: f32) -> Self {
-        if scale == 1.0 {
-            return self;
-        }
-        let (w, h) = (self.content.width, self.content.height);
-        let side = |n: usize| ((n as f32 * scale).round() as usize).max(crate::vgg::MIN_SIDE);
-        let (sw, sh) = (side(w), side(h));
-        let resize = |mask: &[bool]| -> Vec<bool> {
-            let at = |i: usize, n: usize, s: usize| (((i as f32 + 0.5) * n as f32 / s as f32) as usize).min(n - 1);
-            (0..sw * sh).map(|i| mask[at(i / sw, h, sh) * w + at(i % sw, w, sw)]).collect()
-        };
-        let region = self.region.map(|r| PairRegion { edited: resize(&r.edited), kept: resize(&r.kept) });
-        Self { content: self.content.resized(sw, sh), style: self.style.resized(sw, sh), region }
-    }
-}
-
 /// Per cell of a `[rows, cols]` feature grid of `stride` pixels per cell
 /// over an image `width` pixels wide, the fraction of the pixels under it
 /// that `edited` (row-major) marks.
@@ -475,24 +455,6 @@ mod tests {
         let fractions = cell_fractions(&speck, 8, [2, 2], 4);
         assert_eq!(fractions, vec![0.0, 0.0, 0.0, 1.0 / 16.0]);
         assert_eq!(edited_cells(&fractions), vec![3], "a region smaller than a cell keeps the cell it touches");
-    }
-
-    /// `stroke_scale` resizes both images and the region with them (the
-    /// region's left half stays its left half), never below VGG16's smallest side.
-    #[test]
-    fn a_scaled_pair_keeps_its_region_where_it_was() {
-        let image = |w: usize, h: usize| Image::new(w, h, vec![0.5; w * h * 3]);
-        let edited: Vec<bool> = (0..64 * 48).map(|i| i % 64 < 32).collect();
-        let kept = edited.iter().map(|e| !e).collect();
-        let region = Some(PairRegion { edited, kept });
-        let pair = ReferencePair { content: image(64, 48), style: image(64, 48), region };
-        let big = pair.scaled(2.0);
-        assert_eq!([big.content.width, big.content.height, big.style.width], [128, 96, 128]);
-        let region = big.region.as_ref().unwrap();
-        assert!((0..128 * 96).all(|i| region.edited[i] == (i % 128 < 64)), "the region follows the resize");
-        assert!((0..128 * 96).all(|i| region.kept[i] != region.edited[i]));
-        let small = big.scaled(0.25);
-        assert_eq!([small.content.width, small.content.height], [32, 32], "clamped to crate::vgg::MIN_SIDE");
     }
 
     /// The colour template of a region takes each patch's mean over its
