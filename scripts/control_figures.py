@@ -14,8 +14,8 @@ Columns:
 - luminance: mean |Y difference|: what `--preserve-colour` keeps;
 - stroke period: the painting's pattern, as the luminance the stylization added
   (its Y minus the photo's, windowed) seen through its power spectrum: the
-  wavelength in pixels of the spectrum's centroid (median over the views);
-  `--stroke-scale` above 1 should lengthen it.
+  wavelength in pixels of the spectrum's centroid (median over the views):
+  the yardstick for a stroke-scale control (none yet).
 """
 import os
 import sys

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The artist's controls on a painted scene, each beside the plain run:
-# `--preserve-colour`, `--stroke-scale S`, `--style-strength A`, measured
+# `--preserve-colour`, `--style-strength A`, measured
 # against the photoreal field's test renders (scripts/control_figures.py:
 # colour, chroma and luminance distance, and the painting's stroke
 # frequency).
@@ -8,12 +8,12 @@
 # usage: scripts/controls.sh BIN OUT DATA [RUNS] [PRESET]
 #   DATA    a scene folder (../shared/data/nerf_synthetic/lego, .../fern, or a `refnpr scene`)
 #   RUNS    comma-separated, each `plain` or a control:
-#           preserve, stroke=S, strength=A (default plain,preserve,stroke=2,strength=0.5)
+#           preserve, strength=A (default plain,preserve,strength=0.5)
 #   PRESET  the stylize preset (default fast)
 # The reference is training view 0 painted with `refnpr paint --seed 7`.
 # Existing runs in OUT are reused.
 set -euo pipefail
-BIN=$1 OUT=$2 DATA=$3 RUNS=${4:-plain,preserve,stroke=2,strength=0.5} PRESET=${5:-fast}
+BIN=$1 OUT=$2 DATA=$3 RUNS=${4:-plain,preserve,strength=0.5} PRESET=${5:-fast}
 mkdir -p "$OUT"
 [ -f "$OUT/photo/checkpoint.bin" ] || "$BIN" train --data "$DATA" --out "$OUT/photo"
 [ -d "$OUT/photo_test" ] || "$BIN" render --run "$OUT/photo" --path test --out "$OUT/photo_test" >/dev/null
@@ -26,9 +26,8 @@ for run in "${runs[@]}"; do
   case "$run" in
     plain) flags=() ;;
     preserve) flags=(--preserve-colour) ;;
-    stroke=*) flags=(--stroke-scale "${run#stroke=}") ;;
     strength=*) flags=(--style-strength "${run#strength=}") ;;
-    *) echo "unknown run $run (plain, preserve, stroke=S, strength=A)" >&2; exit 2 ;;
+    *) echo "unknown run $run (plain, preserve, strength=A)" >&2; exit 2 ;;
   esac
   if [ ! -f "$OUT/$run/stylize.json" ]; then
     /usr/bin/time -f "$run: %e s, peak %M KB" "$BIN" stylize --run "$OUT/photo" --reference "$OUT/case" \

@@ -440,12 +440,6 @@ pub struct ControlsConfig {
     /// after the image epochs each voxel keeps the stylized luminance and
     /// takes the refit photo colour's chroma (`--preserve-colour`).
     pub preserve_colour: bool,
-    /// The painting's strokes this many times larger (1, 2 or 4) on the
-    /// surfaces TCM carries them to: VGG16 sees the render, and TCM the
-    /// content render, downsampled by this factor, so a stroke n pixels wide
-    /// in the reference is matched as n pixels of the smaller image: n x
-    /// stroke_scale of the view (`--stroke-scale`; 1: the paper).
-    pub stroke_scale: usize,
     /// How much of the stylization the field keeps: 1 all of it, 0 the refit
     /// photo; between, each voxel's colour is the blend (`--style-strength`).
     pub style_strength: f32,
@@ -453,17 +447,12 @@ pub struct ControlsConfig {
 
 impl Default for ControlsConfig {
     fn default() -> Self {
-        Self { preserve_colour: false, stroke_scale: 1, style_strength: 1.0 }
+        Self { preserve_colour: false, style_strength: 1.0 }
     }
 }
 
 impl ControlsConfig {
     pub fn validate(&self) -> Result<()> {
-        ensure!(
-            [1, 2, 4].contains(&self.stroke_scale),
-            "controls.stroke_scale must be 1, 2 or 4, got {}",
-            self.stroke_scale
-        );
         ensure!(
             (0.0..=1.0).contains(&self.style_strength),
             "controls.style_strength must be in [0, 1], got {}",
@@ -638,9 +627,7 @@ mod tests {
     #[test]
     fn controls_out_of_range_are_refused_naming_the_key() {
         let mut config = StylizeConfig::default();
-        assert_eq!((config.controls.stroke_scale, config.controls.style_strength), (1, 1.0));
-        config.controls.stroke_scale = 3;
-        assert!(config.validate().unwrap_err().to_string().contains("controls.stroke_scale"));
+        assert_eq!(config.controls.style_strength, 1.0);
         config.controls = ControlsConfig { style_strength: 1.5, ..ControlsConfig::default() };
         assert!(config.validate().unwrap_err().to_string().contains("controls.style_strength"));
     }

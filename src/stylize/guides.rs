@@ -78,29 +78,22 @@ pub(crate) fn guides(
     progress.event(Event::Start { phase: Phase::Guides, done: 0, total: n });
     let mut out = Vec::with_capacity(n);
     let mut matched = 0.0;
-    let factor = st.feature_factor();
+    let half = st.method() == Method::Arf && st.cfg().arf.half_resolution;
     let half_content = st.cfg().half_content_features && is_host_memory(&st.device);
     for v in 0..n {
         let content = st.render_view(v);
-        let downsampled;
-        let vgg_input = if factor > 1 {
-            downsampled = downsample(&content, factor);
-            &downsampled
+        let halved;
+        let vgg_input = if half {
+            halved = content.half();
+            &halved
         } else {
             &content
         };
         let matched_colour = matches!(colour, Some(ColourSource::Matched));
-        let (raw, colour_desc) =
-            tcm::image_features(&st.vgg, vgg_input, &st.ad, &blocks, matched_colour && factor == 1)?;
-        // L_color's patches are the view's own, at full size, whatever the features' scale.
-        let colour_desc = match matched_colour && factor > 1 {
-            true => tcm::image_features(&st.vgg, &content, &st.ad, &[], true)?.1,
-            false => colour_desc,
-        };
+        let (raw, colour_desc) = tcm::image_features(&st.vgg, vgg_input, &st.ad, &blocks, matched_colour)?;
         let matches = template.map(|t| t.matches(&raw, st.cfg().search_chunk)).unwrap_or_default();
         let edit_votes =
             template.filter(|t| t.local).map(|t| t.edit_votes(&raw[0], st.cfg().search_chunk)).unwrap_or_default();
-        let vote_grid = tcm::block_size(FEATURE_BLOCKS[0], vgg_input.height, vgg_input.width);
         // The content render through the colour map, once, for whichever of the two uses it.
         let mapped = match (keep_content, colour) {
             (Some(Content::Mapped(map)), _) | (_, Some(ColourSource::Mapped { map, .. })) => {
@@ -122,7 +115,7 @@ pub(crate) fn guides(
         };
         let colour = match edit_votes.is_empty() {
             true => colour,
-            false => colour.map(|c| c.only_edited(&edit_votes, vote_grid, content.width, content.height)),
+            false => colour.map(|c| c.only_edited(&edit_votes, content.width, content.height)),
         };
         matched += colour.as_ref().map_or(0.0, |c| c.matched_fraction / n as f32);
         let content_features = match keep_content {
@@ -135,20 +128,10 @@ pub(crate) fn guides(
         };
         let content =
             content_features.into_iter().map(|features| StoredFeatures::store(features, half_content)).collect();
-        out.push(ViewGuide { content, matches, edit_votes, vote_grid, colour });
+        out.push(ViewGuide { content, matches, edit_votes, colour });
         progress.event(Event::Step { phase: Phase::Guides, done: v + 1, total: n, message: String::new() });
     }
     Ok((out, matched))
-}
-
-/// `image` averaged over `factor` x `factor` blocks (`factor` a power of
-/// two; what `losses::downsample` does to a render).
-fn downsample(image: &Image, factor: usize) -> Image {
-    let mut out = image.half();
-    for _ in 1..factor.trailing_zeros() {
-        out = out.half();
-    }
-    out
 }
 
 /// The TCM template of the references, their content renders from the
@@ -173,31 +156,4 @@ fn arf_style_at_half_resolution(style: &Image, view: &Camera) -> Image {
     let (w, h) = ((style.width as f32 * scale).round() as usize, (style.height as f32 * scale).round() as usize);
     let sized = if (w, h) == (style.width, style.height) { style.clone() } else { style.resized(w, h) };
     sized.half()
-}
-
-#[cfg(test)]
-mod tests {
-    use super::downsample;
-    use crate::stylize::losses;
-    use crate::test_support::device;
-    use crate::util::image::Image;
-    use crate::util::tensor::to_vec;
-
-    /// The content render TCM matches and the render the feature loss sees
-    /// are downsampled alike (`[controls] stroke_scale`), odd edges dropped.
-    #[test]
-    fn a_content_render_and_a_render_are_downsampled_alike() {
-        let d = device();
-        let image = Image::new(9, 10, (0..270).map(|i| (i % 17) as f32 / 17.0).collect());
-        for factor in [2, 4] {
-            let host = downsample(&image, factor);
-            assert_eq!([host.width, host.height], [9 / factor, 10 / factor]);
-            let [_, c, h, w] = losses::downsample(image.tensor(&d), factor).dims();
-            let graph = to_vec(losses::downsample(image.tensor(&d), factor).reshape([c, h * w]).transpose());
-            assert_eq!(graph.len(), host.rgb.len());
-            for (a, b) in host.rgb.iter().zip(&graph) {
-                assert!((a - b).abs() < 1e-6, "factor {factor}: {a} vs {b}");
-            }
-        }
-    }
 }

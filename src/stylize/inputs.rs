@@ -88,14 +88,11 @@ fn preflight(job: &StylizeJob, ck: &Checkpoint, dataset: &Dataset) -> Result<[us
     if width < vgg::MIN_SIDE || height < vgg::MIN_SIDE {
         bail!("training views are {width}x{height}: stylization needs at least {0}x{0} (VGG16)", vgg::MIN_SIDE);
     }
-    let (factor, key) = match job.method {
-        Method::Arf => (if job.config.arf.half_resolution { 2 } else { 1 }, "arf.half_resolution"),
-        Method::RefNpr => (job.config.controls.stroke_scale, "controls.stroke_scale"),
-    };
-    if width < factor * vgg::MIN_SIDE || height < factor * vgg::MIN_SIDE {
+    let half = job.method == Method::Arf && job.config.arf.half_resolution;
+    if half && (width < 2 * vgg::MIN_SIDE || height < 2 * vgg::MIN_SIDE) {
         bail!(
-            "training views are {width}x{height}: {key} needs at least {0}x{0} (VGG16 on the view downsampled {factor} times)",
-            factor * vgg::MIN_SIDE
+            "training views are {width}x{height}: arf.half_resolution needs at least {0}x{0} (VGG16 at half size)",
+            2 * vgg::MIN_SIDE
         );
     }
     let grid_bytes = ck.grid.num_rows() as u64 * 3 * 4 * 6; // SH, RMSprop state, gradients

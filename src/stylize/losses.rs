@@ -49,14 +49,6 @@ pub fn half(image: Tensor<4>) -> Tensor<4> {
     avg_pool2d(image, AvgPoolOptions::new([2, 2]).with_stride([2, 2]))
 }
 
-/// `image` averaged over `factor` x `factor` blocks (1: itself).
-pub fn downsample(image: Tensor<4>, factor: usize) -> Tensor<4> {
-    match factor {
-        1 => image,
-        f => avg_pool2d(image, AvgPoolOptions::new([f, f]).with_stride([f, f])),
-    }
-}
-
 /// Mean colour of each `patch` x `patch` block of an image `[1, 3, H, W]`,
 /// as `[(H/patch) * (W/patch), 3]` in row-major patch order (trailing pixels
 /// beyond a multiple of `patch` are left out, as VGG's relu5 grid does).

@@ -45,7 +45,7 @@ use crate::reference::case::{ReferenceCase, RegionSpec, read_style};
 use crate::reference::registration::field_surface;
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
-use crate::stylize::tcm::PairRegion;
+use crate::stylize::tcm::{FEATURE_BLOCKS, PairRegion, block_size};
 use crate::util::image::Image;
 use crate::util::input::InputError;
 use crate::util::tensor::{floats, to_vec};
@@ -304,12 +304,11 @@ pub fn mark_painted_elsewhere(num_rows: usize, references: &[FrozenSamples], reg
 /// The voxels of a local edit. `references` are the references' sample
 /// lists and their regions; `views` are the training views' lists, each
 /// with its relu3 positions' TCM votes (`Template::edit_votes`: whether the
-/// position looks like an edited reference position), its size and the
-/// votes' `[rows, cols]` grid.
+/// position looks like an edited reference position) and its size.
 pub fn edit_region(
     num_rows: usize,
     references: &[(FrozenSamples, &PixelRegion)],
-    views: &mut dyn Iterator<Item = (Cow<'_, FrozenSamples>, &[bool], [usize; 2], [usize; 2])>,
+    views: &mut dyn Iterator<Item = (Cow<'_, FrozenSamples>, &[bool], [usize; 2])>,
 ) -> Result<EditRegion> {
     // Per row: seen by some reference, and edited by one (each reference
     // decides for itself: what one leaves unpainted does not veto another's edit).
@@ -325,7 +324,8 @@ pub fn edit_region(
         }
     }
     let (mut tcm_edit, mut tcm_keep) = (vec![0.0f32; num_rows], vec![0.0f32; num_rows]);
-    for (samples, votes, [w, h], [bh, bw]) in views {
+    for (samples, votes, [w, h]) in views {
+        let [bh, bw] = block_size(FEATURE_BLOCKS[0], h, w);
         ensure!(votes.len() == bh * bw, "TCM votes for {bh}x{bw} positions, got {}", votes.len());
         let label = |ray: usize| {
             let (x, y) = (ray % w, ray / w);

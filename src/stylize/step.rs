@@ -79,8 +79,6 @@ pub struct ViewGuide {
     /// A local edit: per relu3 position, whether it looks like an edited
     /// reference position (`Template::edit_votes`; empty otherwise).
     pub(crate) edit_votes: Vec<bool>,
-    /// The `[rows, cols]` grid of `edit_votes` (relu3 of the features' image).
-    pub(crate) vote_grid: [usize; 2],
     pub(crate) colour: Option<ColourTargets>,
 }
 
@@ -472,17 +470,6 @@ impl<'a> StyleStep<'a> {
         Ok(tf)
     }
 
-    /// How many times smaller the image the feature losses see is than the
-    /// view: `[controls] stroke_scale` (Ref-NPR), 2 with ARF's
-    /// `half_resolution`, 1 otherwise.
-    pub fn feature_factor(&self) -> usize {
-        match self.method() {
-            Method::RefNpr => self.cfg.controls.stroke_scale,
-            Method::Arf if self.cfg.arf.half_resolution => 2,
-            Method::Arf => 1,
-        }
-    }
-
     /// A local edit's regions, one per reference, with the pixels each
     /// leaves unpainted but another paints marked (`mark_painted_elsewhere`).
     pub fn set_regions(&mut self, regions: Option<Vec<PixelRegion>>) {
@@ -503,7 +490,7 @@ impl<'a> StyleStep<'a> {
         let mut views = guides.iter().enumerate().filter(|(_, g)| !g.edit_votes.is_empty()).map(|(v, g)| {
             let k = self.dataset.train[v].camera.intrinsics;
             let lists = self.samples.view(&self.field.grid, v);
-            (lists, &g.edit_votes[..], [k.width as usize, k.height as usize], g.vote_grid)
+            (lists, &g.edit_votes[..], [k.width as usize, k.height as usize])
         });
         edit_region(self.field.grid.num_rows(), &references, &mut views)
     }
@@ -651,10 +638,8 @@ impl<'a> StyleStep<'a> {
             Method::RefNpr => {
                 let template = template.expect("Ref-NPR has a template");
                 if self.cfg.ablation.use_feature_loss {
-                    let factor = self.cfg.controls.stroke_scale;
-                    let small = losses::downsample(image.clone(), factor);
-                    let maps = self.vgg.features(small, &VggLayer::TCM)?;
-                    let render = tcm::render_blocks(&maps, &FEATURE_BLOCKS, h / factor, w / factor);
+                    let maps = self.vgg.features(image.clone(), &VggLayer::TCM)?;
+                    let render = tcm::render_blocks(&maps, &FEATURE_BLOCKS, h, w);
                     let (weight, content_weight) =
                         if smooth { (l.smooth_feature, 0.0) } else { (l.feature, l.content) };
                     for (b, r) in render.into_iter().enumerate() {

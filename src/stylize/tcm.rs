@@ -395,13 +395,15 @@ impl ColourTargets {
     }
 
     /// A local edit: supervises only the patches at least half of whose
-    /// pixels TCM votes edited (`votes`, per position of the `[rows, cols]`
-    /// relu3 grid laid over a `width` x `height` view): a kept surface's patch target would push the edited
+    /// pixels TCM votes edited (`votes`, per relu3 position of a `width` x
+    /// `height` view): a kept surface's patch target would push the edited
     /// voxels beside it to make up the difference.
-    pub fn only_edited(mut self, votes: &[bool], [rows, cols]: [usize; 2], width: usize, height: usize) -> Self {
-        let cell =
-            |i: usize| ((i / width) * rows / height).min(rows - 1) * cols + ((i % width) * cols / width).min(cols - 1);
-        let edited: Vec<bool> = (0..width * height).map(|i| votes[cell(i)]).collect();
+    pub fn only_edited(mut self, votes: &[bool], width: usize, height: usize) -> Self {
+        let [rows, cols] = block_size(FEATURE_BLOCKS[0], height, width);
+        let stride = FEATURE_BLOCKS[0][0].stride();
+        let edited: Vec<bool> = (0..width * height)
+            .map(|i| votes[((i / width) / stride).min(rows - 1) * cols + ((i % width) / stride).min(cols - 1)])
+            .collect();
         let grid = [height / self.patch, width / self.patch];
         let fractions = cell_fractions(&edited, width, grid, self.patch);
         let mut mask = to_vec(self.mask.clone());

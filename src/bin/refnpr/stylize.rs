@@ -221,9 +221,6 @@ pub struct StylizeArgs {
     /// Keep the photo's colours and take only the painting's light and dark ([controls] preserve_colour).
     #[arg(long)]
     pub preserve_colour: bool,
-    /// 1, 2 or 4: the painting's strokes that many times larger where TCM carries them ([controls] stroke_scale).
-    #[arg(long)]
-    pub stroke_scale: Option<usize>,
     /// 1 the stylized field, 0 the refit photo, between them the blend ([controls] style_strength).
     #[arg(long)]
     pub style_strength: Option<f32>,
@@ -257,7 +254,6 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
         epochs,
         backend,
         preserve_colour,
-        stroke_scale,
         style_strength,
         no_render,
         resume,
@@ -272,7 +268,6 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
         config.schedule.image_epochs = e;
     }
     config.controls.preserve_colour |= preserve_colour;
-    config.controls.stroke_scale = stroke_scale.unwrap_or(config.controls.stroke_scale);
     config.controls.style_strength = style_strength.unwrap_or(config.controls.style_strength);
     config.register =
         config::overlay(&config.register, given_flags(&register, matches)?, "the command line", "R³ flags")?;
