@@ -622,7 +622,6 @@ impl StylizeConfig {
 mod tests {
     use super::*;
 
-    /// The compiled-in presets parse, and each is what its help says.
     /// The controls' ranges are checked, naming the key.
     #[test]
     fn controls_out_of_range_are_refused_naming_the_key() {
@@ -632,6 +631,7 @@ mod tests {
         assert!(config.validate().unwrap_err().to_string().contains("controls.style_strength"));
     }
 
+    /// The compiled-in presets parse, and each is what its help says.
     #[test]
     fn presets_parse_and_are_what_they_say() {
         let paper = Preset::Paper.config().unwrap();

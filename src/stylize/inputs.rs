@@ -131,9 +131,10 @@ pub(crate) fn registration(
     regions: Option<&[PixelRegion]>,
     warnings: &mut WarningLog,
 ) -> Result<RegistrationFile> {
-    let edited: Option<Vec<Vec<bool>>> = regions.map(|r| r.iter().map(|region| region.inside.clone()).collect());
     let file = match &job.registration {
         None => {
+            let edited: Option<Vec<Vec<bool>>> =
+                regions.map(|r| r.iter().map(|region| region.inside.clone()).collect());
             let params = &job.config.register;
             let (file, report) = register_case(ck, dataset, case, params, edited.as_deref(), warnings.progress())?;
             warnings.extend_reported(report.warnings);

@@ -267,12 +267,23 @@ fn vote(samples: &FrozenSamples, label: impl Fn(usize) -> Option<bool>, edit: &m
     }
 }
 
-/// Per row, whether `region` wins its vote over `samples` (the
-/// reference's rays): more of the row's weight from edited pixels than kept.
-fn edited_rows(num_rows: usize, samples: &FrozenSamples, region: &PixelRegion) -> Vec<bool> {
+/// Per row, one reference's verdict over its rays (`samples`, labelled by
+/// `label`): None where they give the row too little weight to decide,
+/// else whether more of it comes from edited pixels than from kept ones.
+fn reference_verdict(
+    num_rows: usize,
+    samples: &FrozenSamples,
+    label: impl Fn(usize) -> Option<bool>,
+) -> Vec<Option<bool>> {
     let (mut edit, mut keep) = (vec![0.0f32; num_rows], vec![0.0f32; num_rows]);
-    vote(samples, |ray| Some(region.inside[ray]), &mut edit, &mut keep);
-    edit.iter().zip(&keep).map(|(e, k)| e + k > MIN_WEIGHT && e > k).collect()
+    vote(samples, label, &mut edit, &mut keep);
+    edit.iter().zip(&keep).map(|(e, k)| (e + k > MIN_WEIGHT).then_some(e > k)).collect()
+}
+
+/// Per row, whether `region` wins its vote over `samples` (the reference's rays).
+fn edited_rows(num_rows: usize, samples: &FrozenSamples, region: &PixelRegion) -> Vec<bool> {
+    let verdict = reference_verdict(num_rows, samples, |ray| Some(region.inside[ray]));
+    verdict.into_iter().map(|v| v == Some(true)).collect()
 }
 
 /// Marks, in each reference, the pixels outside its region whose surface
@@ -314,12 +325,11 @@ pub fn edit_region(
     // decides for itself: what one leaves unpainted does not veto another's edit).
     let (mut seen_by_reference, mut edited) = (vec![false; num_rows], vec![false; num_rows]);
     for (samples, region) in references {
-        let (mut edit, mut keep) = (vec![0.0f32; num_rows], vec![0.0f32; num_rows]);
-        vote(samples, |ray| region.label(ray), &mut edit, &mut keep);
-        for row in 0..num_rows {
-            if edit[row] + keep[row] > MIN_WEIGHT {
+        let verdict = reference_verdict(num_rows, samples, |ray| region.label(ray));
+        for (row, v) in verdict.into_iter().enumerate() {
+            if let Some(edit) = v {
                 seen_by_reference[row] = true;
-                edited[row] |= edit[row] > keep[row];
+                edited[row] |= edit;
             }
         }
     }

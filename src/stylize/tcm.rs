@@ -15,7 +15,7 @@ use serde::Serialize;
 
 use crate::stylize::losses::patch_means;
 use crate::util::image::Image;
-use crate::util::tensor::{floats, indices, to_vec};
+use crate::util::tensor::{floats, indices, select_rows, to_vec};
 use crate::vgg::features::{block_descriptors, block_matrix, nearest_by_dot};
 use crate::vgg::{FeatureMaps, Vgg16, VggLayer};
 
@@ -199,7 +199,7 @@ fn keep_rows(x: Tensor<2>, rows: Option<&[usize]>) -> Tensor<2> {
         None => x,
         Some(r) => {
             let device = x.device();
-            x.select(0, indices(r.iter().map(|&i| i as i32).collect(), &device))
+            select_rows(x, indices(r.iter().map(|&i| i as i32).collect(), &device))
         }
     }
 }
