@@ -15,7 +15,7 @@ Columns:
 - stroke period: the painting's pattern, as the luminance the stylization added
   (its Y minus the photo's, windowed) seen through its power spectrum: the
   wavelength in pixels of the spectrum's centroid (median over the views):
-  the yardstick for a stroke-scale control (none yet).
+  the yardstick for `--stroke-scale`.
 """
 import os
 import sys

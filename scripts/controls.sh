@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The artist's controls on a painted scene, each beside the plain run:
-# `--preserve-colour`, `--style-strength A`, measured
+# `--preserve-colour`, `--style-strength A`, `--stroke-scale S`, measured
 # against the photoreal field's test renders (scripts/control_figures.py:
 # colour, chroma and luminance distance, and the painting's stroke
 # frequency).
@@ -8,7 +8,7 @@
 # usage: scripts/controls.sh BIN OUT DATA [RUNS] [PRESET]
 #   DATA    a scene folder (../shared/data/nerf_synthetic/lego, .../fern, or a `refnpr scene`)
 #   RUNS    comma-separated, each `plain` or a control:
-#           preserve, strength=A (default plain,preserve,strength=0.5)
+#           preserve, strength=A, stroke=S (default plain,preserve,strength=0.5)
 #   PRESET  the stylize preset (default fast)
 # The reference is training view 0 painted with `refnpr paint --seed 7`.
 # Existing runs in OUT are reused.
@@ -27,7 +27,8 @@ for run in "${runs[@]}"; do
     plain) flags=() ;;
     preserve) flags=(--preserve-colour) ;;
     strength=*) flags=(--style-strength "${run#strength=}") ;;
-    *) echo "unknown run $run (plain, preserve, strength=A)" >&2; exit 2 ;;
+    stroke=*) flags=(--stroke-scale "${run#stroke=}") ;;
+    *) echo "unknown run $run (plain, preserve, strength=A, stroke=S)" >&2; exit 2 ;;
   esac
   if [ ! -f "$OUT/$run/stylize.json" ]; then
     /usr/bin/time -f "$run: %e s, peak %M KB" "$BIN" stylize --run "$OUT/photo" --reference "$OUT/case" \

@@ -984,6 +984,40 @@ fn tiny_scene_two_references_paint_two_objects_and_both_hold() {
     assert!(f.kept >= 30.0, "the ground and the box moved: {:.2} dB from the photoreal renders", f.kept);
 }
 
+/// `[controls] stroke_scale = 2`: the painting is rescaled before any work
+/// (`STYLE/strokes_0.png`, written, not the painting) and the stylized field
+/// holds the rescaled one: at the reference camera its render is closer to
+/// strokes_0.png than to the painting, where without the control it is the
+/// other way round.
+#[test]
+fn a_stroke_scale_stylizes_after_the_rescaled_painting() {
+    let t = TempDir::new("stroke-scale");
+    let photo = tiny_photo_run(t.path(), 400, 8);
+    let scene = t.path().join("scene");
+    let case = write_case(t.path(), &scene, 0, "");
+    let camera = data::load(&scene, &Default::default()).unwrap().train[0].camera;
+    let read = |p: &std::path::Path| data::composite_over(&image::open(p).unwrap().to_rgba32f(), [1.0; 3]);
+    let painting = read(&case.join("style.png"));
+    let mut renders = Vec::new();
+    for scale in [1.0, 2.0] {
+        let out = t.path().join(format!("style-{scale}"));
+        let mut config = quick_config(2);
+        config.controls.stroke_scale = scale;
+        run_stylize(&job(&photo, &case, &out, config, Method::RefNpr), &refnpr::Quiet).unwrap();
+        assert_eq!(out.join("strokes_0.png").exists(), scale != 1.0, "strokes_0.png at scale {scale}");
+        renders.push(checkpoint::load_with(&out, &common::device(), false).unwrap().render_view(&camera).image.rgb);
+    }
+    let strokes = read(&t.path().join("style-2/strokes_0.png"));
+    let psnr = refnpr::util::metrics::psnr;
+    let painted_apart = psnr(&strokes, &painting);
+    assert!(painted_apart < 35.0, "the rescaled painting is the painting: {painted_apart:.2} dB apart");
+    let [plain, scaled] = [&renders[0], &renders[1]].map(|r| (psnr(r, &strokes), psnr(r, &painting)));
+    eprintln!(
+        "at the reference camera, (to strokes_0.png, to the painting): plain {plain:.2?} dB, scale 2 {scaled:.2?} dB"
+    );
+    assert!(scaled.0 > scaled.1 && plain.1 > plain.0, "plain {plain:.2?}, scale 2 {scaled:.2?}");
+}
+
 /// `refnpr stylize --registration DIR` reads what `refnpr register` wrote
 /// and gives the very field that registering again gives; a file made for
 /// another reference view is refused with the file named.

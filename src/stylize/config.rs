@@ -443,11 +443,15 @@ pub struct ControlsConfig {
     /// How much of the stylization the field keeps: 1 all of it, 0 the refit
     /// photo; between, each voxel's colour is the blend (`--style-strength`).
     pub style_strength: f32,
+    /// The painting's strokes this many times larger (1 to 4) on every
+    /// surface: the paintings are rescaled before any work, their
+    /// colours kept (`--stroke-scale`, `stylize::strokes`).
+    pub stroke_scale: f32,
 }
 
 impl Default for ControlsConfig {
     fn default() -> Self {
-        Self { preserve_colour: false, style_strength: 1.0 }
+        Self { preserve_colour: false, style_strength: 1.0, stroke_scale: 1.0 }
     }
 }
 
@@ -457,6 +461,11 @@ impl ControlsConfig {
             (0.0..=1.0).contains(&self.style_strength),
             "controls.style_strength must be in [0, 1], got {}",
             self.style_strength
+        );
+        ensure!(
+            (1.0..=4.0).contains(&self.stroke_scale),
+            "controls.stroke_scale must be in [1, 4] (strokes are made larger only), got {}",
+            self.stroke_scale
         );
         Ok(())
     }
@@ -629,6 +638,10 @@ mod tests {
         assert_eq!(config.controls.style_strength, 1.0);
         config.controls = ControlsConfig { style_strength: 1.5, ..ControlsConfig::default() };
         assert!(config.validate().unwrap_err().to_string().contains("controls.style_strength"));
+        for scale in [0.5, 5.0] {
+            config.controls = ControlsConfig { stroke_scale: scale, ..ControlsConfig::default() };
+            assert!(config.validate().unwrap_err().to_string().contains("controls.stroke_scale"), "{scale}");
+        }
     }
 
     /// The compiled-in presets parse, and each is what its help says.

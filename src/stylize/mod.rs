@@ -28,7 +28,7 @@
 //! losses draw from and their frozen sample lists), `step` (one image step,
 //! one refit step), `guides` (content renders, TCM matches, colour targets),
 //! `outputs` (the checkpoint and renders a run ends with), `region` (local edits: the painted pixels, the voxels they make, the
-//! photoreal field kept elsewhere), `run` (`refnpr stylize` from files to
+//! photoreal field kept elsewhere), `strokes` (the paintings' strokes at another scale), `run` (`refnpr stylize` from files to
 //! files: the loops, resume points and phase costs).
 
 pub mod colour_map;
@@ -46,6 +46,7 @@ pub mod resume;
 pub mod run;
 pub(crate) mod samples;
 pub(crate) mod step;
+pub(crate) mod strokes;
 pub mod styles;
 pub mod tcm;
 

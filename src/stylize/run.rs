@@ -21,6 +21,7 @@ use crate::stylize::recolouring::{FittedMap, explained_on_content, fit_colour_ma
 use crate::stylize::region::PixelRegion;
 use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::step::{Guidance, StyleStep};
+use crate::stylize::strokes;
 use crate::stylize::styles::is_background;
 use crate::stylize::{CurvePoint, LocalEditReport, Method, StepKind, StylizeJob, StylizeReport};
 use crate::util::costs::Work;
@@ -43,6 +44,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let explained_on_content = explained_on_content(job, &case, &dataset, ck.meta.background);
     let job = &with_recolouring_schedule(job, explained_on_content);
     let _lock = OutputLock::acquire(&job.out)?;
+    let case = strokes::scaled_case(job, case, &dataset, regions.as_deref(), progress)?;
     let resumed = if job.resume { ResumeState::load(job)? } else { None };
     let epochs = job.config.schedule.ray_epochs as f64 + job.config.schedule.image_epochs as f64;
     progress.event(Event::JobStart(Work {

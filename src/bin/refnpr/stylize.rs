@@ -224,6 +224,9 @@ pub struct StylizeArgs {
     /// 1 the stylized field, 0 the refit photo, between them the blend ([controls] style_strength).
     #[arg(long)]
     pub style_strength: Option<f32>,
+    /// The painting's strokes this many times larger (1 to 4) ([controls] stroke_scale).
+    #[arg(long)]
+    pub stroke_scale: Option<f32>,
     /// Skip rendering the test views of the result.
     #[arg(long)]
     pub no_render: bool,
@@ -255,6 +258,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
         backend,
         preserve_colour,
         style_strength,
+        stroke_scale,
         no_render,
         resume,
         registration,
@@ -269,6 +273,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
     }
     config.controls.preserve_colour |= preserve_colour;
     config.controls.style_strength = style_strength.unwrap_or(config.controls.style_strength);
+    config.controls.stroke_scale = stroke_scale.unwrap_or(config.controls.stroke_scale);
     config.register =
         config::overlay(&config.register, given_flags(&register, matches)?, "the command line", "R³ flags")?;
     config.validate()?;
