@@ -45,7 +45,7 @@ use crate::reference::case::{ReferenceCase, RegionSpec, read_style};
 use crate::reference::registration::field_surface;
 use crate::scene::camera::Camera;
 use crate::scene::data::Dataset;
-use crate::stylize::tcm::{FEATURE_BLOCKS, PairRegion, block_size};
+use crate::stylize::tcm::{FEATURE_BLOCKS, PairRegion, block_size, relu3_position_of};
 use crate::util::image::Image;
 use crate::util::input::InputError;
 use crate::util::tensor::{floats, to_vec};
@@ -337,10 +337,7 @@ pub fn edit_region(
     for (samples, votes, [w, h]) in views {
         let [bh, bw] = block_size(FEATURE_BLOCKS[0], h, w);
         ensure!(votes.len() == bh * bw, "TCM votes for {bh}x{bw} positions, got {}", votes.len());
-        let label = |ray: usize| {
-            let (x, y) = (ray % w, ray / w);
-            Some(votes[(y * bh / h).min(bh - 1) * bw + (x * bw / w).min(bw - 1)])
-        };
+        let label = |ray: usize| Some(votes[relu3_position_of(ray % w, ray / w, w, h)]);
         vote(&samples, label, &mut tcm_edit, &mut tcm_keep);
     }
     let (mut seen, mut matched) = (0, 0);

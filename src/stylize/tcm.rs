@@ -32,6 +32,16 @@ pub fn block_size(block: &[VggLayer], height: usize, width: usize) -> [usize; 2]
     block[0].map_size(height, width)
 }
 
+/// The relu3 position (row-major in its `block_size` grid) whose receptive
+/// centre is nearest pixel `(x, y)` of a `width` x `height` view: the pixel
+/// divided by the block's stride, the last row and column taking the
+/// pixels a pooling dropped. One mapping for every per-position vote.
+pub fn relu3_position_of(x: usize, y: usize, width: usize, height: usize) -> usize {
+    let [rows, cols] = block_size(FEATURE_BLOCKS[0], height, width);
+    let stride = FEATURE_BLOCKS[0][0].stride();
+    (y / stride).min(rows - 1) * cols + (x / stride).min(cols - 1)
+}
+
 /// Features of `image` for `blocks` (raw, `[positions, channels]` each) and,
 /// when `colour` is set, the normalised relu5 descriptors. No gradient.
 pub fn image_features(
@@ -399,11 +409,8 @@ impl ColourTargets {
     /// `height` view): a kept surface's patch target would push the edited
     /// voxels beside it to make up the difference.
     pub fn only_edited(mut self, votes: &[bool], width: usize, height: usize) -> Self {
-        let [rows, cols] = block_size(FEATURE_BLOCKS[0], height, width);
-        let stride = FEATURE_BLOCKS[0][0].stride();
-        let edited: Vec<bool> = (0..width * height)
-            .map(|i| votes[((i / width) / stride).min(rows - 1) * cols + ((i % width) / stride).min(cols - 1)])
-            .collect();
+        let edited: Vec<bool> =
+            (0..width * height).map(|i| votes[relu3_position_of(i % width, i / width, width, height)]).collect();
         let grid = [height / self.patch, width / self.patch];
         let fractions = cell_fractions(&edited, width, grid, self.patch);
         let mut mask = to_vec(self.mask.clone());
