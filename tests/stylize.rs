@@ -865,6 +865,10 @@ fn tiny_scene_painted_on_one_object_changes_only_that_object() {
     let graded = t.path().join("graded");
     paint::recolour_dataset(&scene, &graded, paint::Grade::Hue, Some(&sphere)).unwrap();
     let style_ck = checkpoint::load_with(&out, &d, false).unwrap();
+    // reference_0.png is the saved field at the reference camera (every SH
+    // band outside the edit), to the 8 bits of the PNG.
+    let written = image::open(out.join("reference_0.png")).unwrap().to_rgb8();
+    assert_eq!(written, style_ck.render_view(&ds.train[0].camera).image.to_rgb8(), "reference_0.png");
     let f = local_edit_figures(&scene, &graded, &photo_ck, &style_ck, &sphere);
     let ((edited, before), kept) = (f.edited[0], f.kept);
     assert!(edited >= before + 3.0, "the sphere: edited {edited:.2} dB vs photoreal {before:.2} dB");

@@ -47,8 +47,19 @@ pub(crate) fn save_outputs(
     let (rows, device) = (grid.num_rows(), grid.device());
     let zeros = (Tensor::zeros([rows, 1], &device), Tensor::zeros([rows, 3 * grid.num_basis()], &device));
     checkpoint::save(&out.join(checkpoint::CHECKPOINT_FILE), &meta, grid, &zeros.0, &zeros.1, &[])?;
+    // A local edit's reference renders come from the saved field (every SH
+    // band outside the edit), as `refnpr render` would draw them; the
+    // stylized field alone is what was saved otherwise.
+    let saved = match step.edit {
+        Some(_) => Some(checkpoint::load_with(&out.join(checkpoint::CHECKPOINT_FILE), &device, false)?),
+        None => None,
+    };
     for r in 0..step.num_references() {
-        step.render_reference(r).save_png(&out.join(format!("reference_{r}.png")))?;
+        let render = match &saved {
+            Some(ck) => ck.render_view(&step.samples.registration.references[r].camera).image,
+            None => step.render_reference(r),
+        };
+        render.save_png(&out.join(format!("reference_{r}.png")))?;
     }
     Ok(())
 }
