@@ -15,7 +15,10 @@ Columns:
 - stroke period: the painting's pattern, as the luminance the stylization added
   (its Y minus the photo's, windowed) seen through its power spectrum: the
   wavelength in pixels of the spectrum's centroid (median over the views):
-  the yardstick for `--stroke-scale`.
+  the yardstick for `--stroke-scale`;
+- at the reference: the same period of the run's render at the reference
+  camera (OUT/RUN/reference_0.png) against the image the painting was made
+  over (OUT/case/content.png), where the painting is told exactly.
 """
 import os
 import sys
@@ -49,8 +52,9 @@ def stroke_period(residual):
 def main():
     photo_dir, out, runs = sys.argv[1], sys.argv[2], sys.argv[3:]
     names = sorted(n for n in os.listdir(photo_dir) if n.endswith(".png"))
-    print("| run | colour | chroma | luminance | stroke period (px) | views |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    print("| run | colour | chroma | luminance | stroke period (px) | at the reference (px) | views |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    content_y, _ = ycc(load(os.path.join(out, "case", "content.png")))
     for run in runs:
         colour, chroma, luma, periods = [], [], [], []
         for n in names:
@@ -63,7 +67,11 @@ def main():
             luma.append(np.abs(ys - yp)[~both_white])
             periods.append(stroke_period(ys - yp))
         mean = lambda parts: np.concatenate(parts).mean()
-        print(f"| {run} | {mean(colour):.4f} | {mean(chroma):.4f} | {mean(luma):.4f} | {np.median(periods):.2f} | {len(names)} |")
+        at_reference = stroke_period(ycc(load(os.path.join(out, run, "reference_0.png")))[0] - content_y)
+        print(
+            f"| {run} | {mean(colour):.4f} | {mean(chroma):.4f} | {mean(luma):.4f} | {np.median(periods):.2f} "
+            f"| {at_reference:.2f} | {len(names)} |"
+        )
 
 
 if __name__ == "__main__":

@@ -18,7 +18,9 @@ spiral stays a few MB).
 
 One row of images at half size (a reference beside a run's test views):
     python3 scripts/make_gallery.py --row NAME.png IMAGE...
-writes assets/gallery/NAME.png.
+writes assets/gallery/NAME.png. Several rows, one below the other (each
+argument a comma-separated list of images; images wider than 256 px at half size):
+    python3 scripts/make_gallery.py --rows NAME.png IMAGE,IMAGE... IMAGE,...
 """
 import shutil
 import sys
@@ -94,6 +96,14 @@ def main():
     if len(sys.argv) >= 4 and sys.argv[1] == "--row":
         images = [on_white(p) for p in sys.argv[3:]]
         row([im.resize((im.width // 2, im.height // 2), Image.LANCZOS) for im in images]).save(out / sys.argv[2])
+        print(f"wrote {out / sys.argv[2]}")
+        return
+    if len(sys.argv) >= 4 and sys.argv[1] == "--rows":
+        def fit(im):
+            return im if im.width <= 256 else im.resize((im.width // 2, im.height // 2), Image.LANCZOS)
+
+        rows = [row([fit(on_white(p)) for p in arg.split(",")]) for arg in sys.argv[3:]]
+        column(rows).save(out / sys.argv[2])
         print(f"wrote {out / sys.argv[2]}")
         return
     if len(sys.argv) == 6 and sys.argv[1] == "--scene":
