@@ -798,6 +798,40 @@ fn a_recolouring_reaches_the_unseen_side_through_the_colour_map() {
     assert!(psnrs[2] > psnrs[1], "a recolouring {:.2} dB vs the map's plain weight {:.2} dB", psnrs[2], psnrs[1]);
 }
 
+/// Coarse image epochs (`schedule.coarse_scale = 2`): R³, the refit and
+/// the image epochs on the 32 px views, the smooth update on the 64 px
+/// ones. The run registers the coarse views, reports the full size, moves
+/// the test views towards the stylized twin by at least 1 dB as a full-size
+/// run does, and keeps the density; ARF is refused before anything is
+/// written, and a schedule without a smooth epoch by its validation.
+#[test]
+fn coarse_epochs_stylize_the_tiny_scene_and_end_at_full_size() {
+    let t = TempDir::new("stylize-coarse");
+    let photo = tiny_photo_run(t.path(), 400, 16);
+    let scene = t.path().join("scene");
+    let case = write_case(t.path(), &scene, 0, "");
+    let out = t.path().join("style");
+    let mut config = quick_config(4);
+    config.schedule.coarse_scale = 2;
+    let report = run_stylize(&job(&photo, &case, &out, config.clone(), Method::RefNpr), &refnpr::Quiet).unwrap();
+    assert_eq!(report.image_size, [64, 64], "the report names the views' own size");
+    assert!(report.seconds.contains_key("registration_coarse"), "{:?}", report.seconds.keys());
+    let twin = data::load(&scene.join("stylized"), &Default::default()).unwrap();
+    let (before, after) = (test_psnr(&photo, &twin), test_psnr(&out, &twin));
+    eprintln!("coarse epochs: PSNR to the stylized twin: photoreal {before:.2} dB, stylized {after:.2} dB");
+    assert!(after >= before + 1.0, "stylized {after:.2} dB vs photoreal {before:.2} dB");
+    let d = common::device();
+    let (a, b) = (checkpoint::load_with(&photo, &d, false).unwrap(), checkpoint::load_with(&out, &d, false).unwrap());
+    assert_eq!(to_vec(a.grid.density.clone()), to_vec(b.grid.density.clone()), "density changed");
+
+    let arf_out = t.path().join("arf");
+    let err = run_stylize(&job(&photo, &case, &arf_out, config.clone(), Method::Arf), &refnpr::Quiet).unwrap_err();
+    assert!(format!("{err:#}").contains("coarse_scale"), "{err:#}");
+    assert!(!arf_out.join("checkpoint.bin").exists(), "a refused run wrote a checkpoint");
+    config.schedule.smooth_fraction = 0.0;
+    assert!(config.validate().is_err(), "coarse epochs without a smooth epoch were accepted");
+}
+
 /// A scene in a textured far environment, its fit with a far background:
 /// Ref-NPR stylizes the far background too (painted where the reference
 /// sees it, recoloured elsewhere), so the test views move towards the

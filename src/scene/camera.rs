@@ -33,6 +33,21 @@ impl Intrinsics {
         Self { width, height, fx: self.fx * sx, fy: self.fy * sy, cx: self.cx * sx, cy: self.cy * sy }
     }
 
+    /// The camera whose pixels are `n` x `n` blocks of this one's (an odd
+    /// last row or column dropped): focal and centre divided by `n`, so a
+    /// pixel's ray passes through its block's centre.
+    pub fn downscaled(&self, n: u32) -> Self {
+        let s = n as f32;
+        Self {
+            width: self.width / n,
+            height: self.height / n,
+            fx: self.fx / s,
+            fy: self.fy / s,
+            cx: self.cx / s,
+            cy: self.cy / s,
+        }
+    }
+
     pub fn num_pixels(&self) -> usize {
         self.width as usize * self.height as usize
     }
@@ -232,6 +247,18 @@ pub fn pose_is_valid(m: &Mat4) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A downscaled camera's pixel looks through the centre of its block.
+    #[test]
+    fn a_downscaled_pixel_looks_through_its_blocks_centre() {
+        let k = Intrinsics::from_fov_x(64, 48, 0.8);
+        let cam = Camera::new(k, look_at(Vec3::new(3.0, 1.0, 2.0), Vec3::ZERO, Vec3::Z));
+        let small = Camera { intrinsics: k.downscaled(3), ..cam };
+        assert_eq!((small.intrinsics.width, small.intrinsics.height), (21, 16));
+        let (x, y) = (5.0, 9.0);
+        let block_centre = cam.ray(x * 3.0 + 1.0, y * 3.0 + 1.0);
+        assert!((small.ray(x, y).dir - block_centre.dir).length() < 1e-5);
+    }
 
     #[test]
     fn centre_pixel_looks_forward_and_projects_back() {

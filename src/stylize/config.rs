@@ -109,6 +109,11 @@ pub struct ScheduleConfig {
     pub eps: f32,
     /// Image steps between two writes of `OUT/resume.bin` (0: only after the refit).
     pub checkpoint_every: usize,
+    /// Ref-NPR: everything before the smooth update (R³, the refit, the
+    /// guides, the image epochs) runs on the training views this many times
+    /// smaller, the smooth update on the views at full size (1: all at full
+    /// size). Cost follows pixels; the grid does not change with it.
+    pub coarse_scale: u32,
 }
 
 impl Default for ScheduleConfig {
@@ -126,6 +131,7 @@ impl Default for ScheduleConfig {
             rmsprop_beta: 0.95,
             eps: 1e-8,
             checkpoint_every: 50,
+            coarse_scale: 1,
         }
     }
 }
@@ -600,6 +606,18 @@ impl StylizeConfig {
             ensure!(v.is_finite() && v > 0.0, "{name} must be a positive number, got {v}");
         }
         ensure!(s.lr_decay_steps > 0, "schedule.lr_decay_steps must be positive");
+        ensure!((1..=8).contains(&s.coarse_scale), "schedule.coarse_scale must be in 1..=8, got {}", s.coarse_scale);
+        ensure!(
+            s.coarse_scale == 1
+                || (self.ablation.smooth_update && (s.image_epochs as f32 * s.smooth_fraction).round() >= 1.0),
+            "schedule.coarse_scale > 1 runs the smooth update at full size: it needs ablation.smooth_update and \
+             at least one smooth epoch (schedule.smooth_fraction of schedule.image_epochs)"
+        );
+        ensure!(
+            s.coarse_scale == 1 || !self.colour_map.in_smooth_update,
+            "schedule.coarse_scale > 1 cannot keep L_color in the smooth update (colour_map.in_smooth_update): \
+             its targets are the coarse views'"
+        );
         ensure!((0.0..1.0).contains(&s.rmsprop_beta), "schedule.rmsprop_beta must be in [0, 1)");
         for (name, v) in [
             ("loss.reference", l.reference),

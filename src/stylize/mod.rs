@@ -31,6 +31,7 @@
 //! photoreal field kept elsewhere), `strokes` (the paintings' strokes at another scale), `run` (`refnpr stylize` from files to
 //! files: the loops, resume points and phase costs).
 
+pub(crate) mod coarse;
 pub mod colour_map;
 pub mod colour_transfer;
 pub mod config;

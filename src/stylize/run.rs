@@ -13,9 +13,11 @@ use anyhow::{Result, bail};
 use rand::seq::SliceRandom;
 
 use crate::field::checkpoint;
+use crate::scene::data::Dataset;
+use crate::stylize::coarse::{self, FineStage};
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::guides::{self, ColourSource, Content};
-use crate::stylize::inputs::{Inputs, keeps_content, registration, style_side};
+use crate::stylize::inputs::{self, Inputs, keeps_content, registration, style_side};
 use crate::stylize::outputs::{render_test_views, save_outputs};
 use crate::stylize::recolouring::{FittedMap, explained_on_content, fit_colour_map, with_recolouring_schedule};
 use crate::stylize::region::PixelRegion;
@@ -46,25 +48,25 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let _lock = OutputLock::acquire(&job.out)?;
     let case = strokes::scaled_case(job, case, &dataset, regions.as_deref(), progress)?;
     let resumed = if job.resume { ResumeState::load(job)? } else { None };
-    let epochs = job.config.schedule.ray_epochs as f64 + job.config.schedule.image_epochs as f64;
-    progress.event(Event::JobStart(Work {
-        job: job_name(job.method),
-        backend: job.backend.to_string(),
-        shape: dataset.shape_name().into(),
-        units: dataset.train_pixels() * epochs,
-        pixels: dataset.train_pixels(),
-        resumed: resumed.is_some(),
-    }));
+    announce_start(job, &dataset, resumed.is_some(), progress);
     let mut phases = PhaseLog::default();
     let mut warnings = WarningLog::new(progress);
+    let coarse = coarse::coarse_dataset(job, &dataset, &case)?;
     let registration =
         phases.run("registration", 0, || registration(job, &ck, &dataset, &case, regions.as_deref(), &mut warnings))?;
     let registered_fraction = registration.fraction_overall();
     let (styles, style_colours, colour_transfer) =
         style_side(job, &case, &dataset, &registration, ck.meta.background, &mut warnings)?;
+    let register_coarse = |small: &Dataset| {
+        progress.info(coarse::announce(job, small, &dataset));
+        phases.run("registration_coarse", 0, || inputs::registration(job, &ck, small, &case, None, &mut warnings))
+    };
+    let (work, registration, styles, fine) =
+        coarse::stages(coarse.as_ref(), &dataset, registration, styles, register_coarse)?;
+    let image_size = coarse::view_size(work).unwrap_or(image_size);
     let photo_meta = ck.meta.clone();
     let mut st =
-        Stylization::new(job, StyleStep::new(job, &dataset, ck.grid, &photo_meta, registration), colour_transfer);
+        Stylization::new(job, StyleStep::new(job, work, ck.grid, &photo_meta, registration), colour_transfer, fine);
     let start = st.refit_or_resume(resumed.as_ref(), &mut phases, progress)?;
     st.step.set_regions(regions);
     if job.method == Method::RefNpr && st.step.regions.is_none() {
@@ -75,11 +77,11 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let (guidance, colour_matched) = st.content_phase(&styles, colour, image_size, &mut phases, progress)?;
     let local_edit = st.local_edit(&guidance, progress)?;
     st.recolour_field();
-    let sample_cache = st.step.samples.report(job.config.sample_cache_mb);
     if let Some(state) = resumed {
         st.restore(state);
     }
     st.image_epochs(&styles, guidance, start, &mut phases, progress)?;
+    let sample_cache = st.step.samples.report(job.config.sample_cache_mb);
     st.apply_controls();
     let post_colour_transfer = st.post_colour_transfer(style_colours, progress)?;
     let steps = st.curve.iter().filter(|p| p.phase != StepKind::Refit).count();
@@ -92,7 +94,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         config: job.config.clone(),
         registration: job.registration.clone(),
         views: dataset.train.len(),
-        image_size,
+        image_size: coarse::view_size(&dataset).unwrap_or(image_size),
         registered_pixels: st.step.samples.registered.len(),
         registered_fraction,
         colour_matched_fraction: colour_matched,
@@ -118,6 +120,19 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     Ok(report)
 }
 
+/// The event a run starts with: its name, backend and work in pixels.
+fn announce_start(job: &StylizeJob, dataset: &Dataset, resumed: bool, progress: &dyn Progress) {
+    let epochs = job.config.schedule.ray_epochs as f64 + job.config.schedule.image_epochs as f64;
+    progress.event(Event::JobStart(Work {
+        job: job_name(job.method),
+        backend: job.backend.to_string(),
+        shape: dataset.shape_name().into(),
+        units: dataset.train_pixels() * epochs,
+        pixels: dataset.train_pixels(),
+        resumed,
+    }));
+}
+
 /// A stylization in progress: its step, the loss curve so far, and what
 /// its resume points hold.
 struct Stylization<'a> {
@@ -136,10 +151,17 @@ struct Stylization<'a> {
     saved_at: Option<usize>,
     /// Each finished phase's step profile (`refit`, `image_epochs`, `smooth_update`).
     step_profiles: BTreeMap<String, Vec<PartTime>>,
+    /// Coarse epochs (`schedule.coarse_scale`): the views at full size, for the smooth update.
+    fine: Option<FineStage<'a>>,
 }
 
 impl<'a> Stylization<'a> {
-    fn new(job: &'a StylizeJob, mut step: StyleStep<'a>, colour_transfer: Option<ColourTransfer>) -> Self {
+    fn new(
+        job: &'a StylizeJob,
+        mut step: StyleStep<'a>,
+        colour_transfer: Option<ColourTransfer>,
+        fine: Option<FineStage<'a>>,
+    ) -> Self {
         if let (true, Some(tf)) = (job.method == Method::Arf && job.config.arf.transfer_grid, colour_transfer) {
             step.field.apply_colour_transfer(&tf);
         }
@@ -153,6 +175,7 @@ impl<'a> Stylization<'a> {
             smooth_sh: None,
             saved_at: None,
             step_profiles: BTreeMap::new(),
+            fine,
         }
     }
 
@@ -432,6 +455,19 @@ impl<'a> Stylization<'a> {
         resumed_past: bool,
         progress: &dyn Progress,
     ) -> Result<Transfers> {
+        let fine_styles;
+        let styles = match self.fine.take() {
+            Some(fine) => {
+                progress.info(format!(
+                    "smooth update on the views at full size ({} views)",
+                    coarse::view_size(fine.dataset).map(|[w, h]| format!("{w}x{h}")).unwrap_or_default()
+                ));
+                self.step.use_views(fine.dataset, fine.registration);
+                fine_styles = fine.styles;
+                &fine_styles[..]
+            }
+            None => styles,
+        };
         let now = match (&self.smooth_sh, resumed_past) {
             (Some(then), true) => {
                 let then = self.step.sh_tensor(then);

@@ -130,6 +130,19 @@ impl<'a> SampleCache<'a> {
         self.march
     }
 
+    /// The forward-facing warp of the rays (None around a scene).
+    pub fn ndc(&self) -> Option<NdcParams> {
+        self.ndc
+    }
+
+    /// Frees every cached list (the cache is being replaced).
+    pub fn release(&mut self) {
+        self.views.iter_mut().for_each(|v| *v = None);
+        self.views_on_device.iter_mut().for_each(|v| *v = None);
+        (self.registered_samples, self.registered_on_device, self.reference_on_device) = (None, None, None);
+        self.reference_lists = FrozenSamples::default();
+    }
+
     pub fn num_references(&self) -> usize {
         self.reference_first_ray.len() - 1
     }

@@ -238,6 +238,18 @@ impl<'a> StyleStep<'a> {
         }
     }
 
+    /// From now on the steps are on `dataset`'s training views, with the
+    /// pseudo-rays of `registration` (coarse epochs: the views at full size
+    /// for the smooth update). The old lists are freed first, and the new
+    /// ones cached.
+    pub fn use_views(&mut self, dataset: &'a Dataset, registration: RegistrationFile) {
+        let (ndc, march) = (self.samples.ndc(), self.samples.march());
+        self.samples.release();
+        self.dataset = dataset;
+        self.samples = SampleCache::new(&self.field.grid, dataset, ndc, march, self.cfg, registration);
+        self.cache_samples();
+    }
+
     /// Caches the sample lists (once; `samples::SampleCache::cache`).
     pub fn cache_samples(&mut self) {
         self.samples.cache(&self.field.grid, self.cfg, self.job.method, &self.device);

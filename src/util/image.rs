@@ -49,6 +49,26 @@ impl Image {
         Image::new(w, h, rgb)
     }
 
+    /// The image `n` times smaller, each pixel the mean of an `n` x `n`
+    /// block (an incomplete last row or column of blocks is dropped).
+    pub fn block_mean(&self, n: usize) -> Image {
+        let (w, h) = (self.width / n, self.height / n);
+        let mut rgb = vec![0.0f32; w * h * 3];
+        let scale = 1.0 / (n * n) as f32;
+        for (y, row) in rgb.chunks_exact_mut(w * 3).enumerate() {
+            for (x, out) in row.chunks_exact_mut(3).enumerate() {
+                for dy in 0..n {
+                    let start = ((y * n + dy) * self.width + x * n) * 3;
+                    for px in self.rgb[start..start + n * 3].chunks_exact(3) {
+                        out.iter_mut().zip(px).for_each(|(o, p)| *o += p);
+                    }
+                }
+                out.iter_mut().for_each(|o| *o *= scale);
+            }
+        }
+        Image::new(w, h, rgb)
+    }
+
     /// The image resized to `width` x `height` (triangle filter, widened when
     /// shrinking, so it averages like an area resize).
     pub fn resized(&self, width: usize, height: usize) -> Image {
@@ -136,4 +156,24 @@ pub fn save_gif(path: &Path, frames: &[RgbImage], delay_ms: u32) -> Result<()> {
         }
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Image;
+
+    /// A 2 x 2 block mean is `half`; a 3 x 3 one averages nine pixels and
+    /// drops the incomplete last column.
+    #[test]
+    fn block_mean_averages_whole_blocks() {
+        let rgb: Vec<f32> = (0..7 * 6 * 3).map(|i| (i * 37 % 101) as f32 / 100.0).collect();
+        let image = Image::new(7, 6, rgb);
+        assert_eq!(image.block_mean(2).rgb, image.half().rgb);
+        let third = image.block_mean(3);
+        assert_eq!((third.width, third.height), (2, 2));
+        let at = |x: usize, y: usize, c: usize| image.rgb[(y * 7 + x) * 3 + c];
+        let expected: f32 =
+            (3..6).flat_map(|x| (3..6).map(move |y| (x, y))).map(|(x, y)| at(x, y, 1)).sum::<f32>() / 9.0;
+        assert!((third.rgb[(2 + 1) * 3 + 1] - expected).abs() < 1e-6);
+    }
 }

@@ -227,6 +227,10 @@ pub struct StylizeArgs {
     /// The painting's strokes this many times larger (1 to 4) ([controls] stroke_scale).
     #[arg(long)]
     pub stroke_scale: Option<f32>,
+    /// Ref-NPR: R³, the refit and the image epochs on the training views this many times
+    /// smaller, the smooth update at full size ([schedule] coarse_scale; 1: all at full size).
+    #[arg(long)]
+    pub coarse_scale: Option<u32>,
     /// Skip rendering the test views of the result.
     #[arg(long)]
     pub no_render: bool,
@@ -259,6 +263,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
         preserve_colour,
         style_strength,
         stroke_scale,
+        coarse_scale,
         no_render,
         resume,
         registration,
@@ -274,6 +279,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
     config.controls.preserve_colour |= preserve_colour;
     config.controls.style_strength = style_strength.unwrap_or(config.controls.style_strength);
     config.controls.stroke_scale = stroke_scale.unwrap_or(config.controls.stroke_scale);
+    config.schedule.coarse_scale = coarse_scale.unwrap_or(config.schedule.coarse_scale);
     config.register =
         config::overlay(&config.register, given_flags(&register, matches)?, "the command line", "R³ flags")?;
     config.validate()?;

@@ -147,6 +147,24 @@ impl Dataset {
         self.train.iter().map(|v| v.camera.intrinsics.width as f64 * v.camera.intrinsics.height as f64).sum()
     }
 
+    /// The dataset with its training views `n` times smaller: each pixel the
+    /// mean of an `n` x `n` block, the cameras to match
+    /// ([`Intrinsics::downscaled`]); the test and validation views stay.
+    pub fn with_train_downscaled(&self, n: u32) -> Dataset {
+        let train = self
+            .train
+            .iter()
+            .map(|v| {
+                let k = v.camera.intrinsics;
+                let image = crate::util::image::Image::new(k.width as usize, k.height as usize, v.rgb.clone());
+                let small = image.block_mean(n as usize);
+                let camera = Camera { intrinsics: k.downscaled(n), ..v.camera };
+                View { name: v.name.clone(), camera, rgb: small.rgb }
+            })
+            .collect();
+        Dataset { train, ..self.clone() }
+    }
+
     /// `forward-facing` (rendered in NDC) or `around`.
     pub fn shape_name(&self) -> &'static str {
         if self.ndc.is_some() { "forward-facing" } else { "around" }
