@@ -832,6 +832,39 @@ fn coarse_epochs_stylize_the_tiny_scene_and_end_at_full_size() {
     assert!(config.validate().is_err(), "coarse epochs without a smooth epoch were accepted");
 }
 
+/// The memory budget: content features taken again at each step (what a
+/// tight budget does) give the same stylized field as kept ones, to the
+/// bit; a budget below what the run has already loaded is refused before
+/// the refit, naming the parts and what to change; the plan is reported.
+#[test]
+fn the_memory_budget_recomputes_content_features_alike_and_refuses_what_cannot_fit() {
+    let t = TempDir::new("stylize-budget");
+    let photo = tiny_photo_run(t.path(), 200, 8);
+    let case = write_case(t.path(), &t.path().join("scene"), 0, "");
+    let config = quick_config(2);
+    let (kept, again) = (t.path().join("kept"), t.path().join("again"));
+    let report = run_stylize(&job(&photo, &case, &kept, config.clone(), Method::RefNpr), &refnpr::Quiet).unwrap();
+    let plan = report.memory_plan.expect("a plan on Linux");
+    assert_eq!((plan.content_views_kept, plan.content_views), (8, 8));
+    assert!(plan.predicted_peak_mb <= plan.budget_mb && plan.resident_mb > 0.0, "{plan:?}");
+    assert!(report.held["content"].guides_mb > 0.0, "{:?}", report.held);
+    let recompute = StylizeConfig { keep_content_features: false, ..config.clone() };
+    let report = run_stylize(&job(&photo, &case, &again, recompute, Method::RefNpr), &refnpr::Quiet).unwrap();
+    assert_eq!(report.memory_plan.map(|p| p.content_views_kept), Some(0));
+    let d = common::device();
+    let (a, b) = (checkpoint::load_with(&kept, &d, false).unwrap(), checkpoint::load_with(&again, &d, false).unwrap());
+    assert_eq!(to_vec(a.grid.sh.clone()), to_vec(b.grid.sh.clone()), "recomputed content features changed the field");
+
+    let refused = t.path().join("refused");
+    let tiny = StylizeConfig { memory_gb: 0.01, ..config };
+    let err = run_stylize(&job(&photo, &case, &refused, tiny, Method::RefNpr), &refnpr::Quiet).unwrap_err();
+    let err = format!("{err:#}");
+    for part in ["over its budget of 0.01 GB", "loaded now", "the image steps", "--memory-gb", "--coarse-scale 2"] {
+        assert!(err.contains(part), "{part:?} missing: {err}");
+    }
+    assert!(!refused.join("checkpoint.bin").exists(), "a refused run wrote a checkpoint");
+}
+
 /// A scene in a textured far environment, its fit with a far background:
 /// Ref-NPR stylizes the far background too (painted where the reference
 /// sees it, recoloured elsewhere), so the test views move towards the

@@ -501,6 +501,11 @@ pub struct StylizeConfig {
     pub min_sample_weight: f32,
     /// Memory for cached per-view sample lists (MB); views beyond it are re-marched each step.
     pub sample_cache_mb: usize,
+    /// The run's memory budget, GB (`stylize::budget`): the sample cache
+    /// and the kept content features shrink to fit it, and a run that
+    /// cannot fit is refused before the refit. 0: 90 % of the machine's
+    /// free memory.
+    pub memory_gb: f32,
     /// Where the cached sample lists are kept (a device copy is in addition
     /// to the host's, which gives each step its rows, so it takes up to
     /// `sample_cache_mb` of device memory).
@@ -510,6 +515,11 @@ pub struct StylizeConfig {
     /// On the CPU backends, keep the content term's fixed features as f16
     /// numbers (half their memory; `tcm::StoredFeatures`). No effect on a GPU.
     pub half_content_features: bool,
+    /// Keep the content term's fixed features of every view from the
+    /// guides on; false: take them again at each step from the view's
+    /// content render (one more VGG16 forward per step, no memory for
+    /// them). The memory budget may leave fewer views kept.
+    pub keep_content_features: bool,
     /// Wait for the device at the end of each timed part of a step, so
     /// that on a GPU each part's time in the step profile is its own work
     /// (its queue runs asynchronously otherwise, and a part's time lands
@@ -538,9 +548,11 @@ impl Default for StylizeConfig {
             colour_corners: ColourCorners::Renormalised,
             min_sample_weight: 1e-5,
             sample_cache_mb: 2048,
+            memory_gb: 0.0,
             samples_on_device: Placement::Auto,
             ray_kernel: RayKernel::Auto,
             half_content_features: true,
+            keep_content_features: true,
             sync_parts: false,
             render_chunk: 16384,
             search_chunk: 1024,
@@ -619,6 +631,11 @@ impl StylizeConfig {
              its targets are the coarse views'"
         );
         ensure!((0.0..1.0).contains(&s.rmsprop_beta), "schedule.rmsprop_beta must be in [0, 1)");
+        ensure!(
+            self.memory_gb.is_finite() && self.memory_gb >= 0.0,
+            "memory_gb must be a number of GB >= 0 (0: 90 % of the free memory), got {}",
+            self.memory_gb
+        );
         for (name, v) in [
             ("loss.reference", l.reference),
             ("loss.feature", l.feature),

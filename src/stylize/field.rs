@@ -15,7 +15,7 @@ use crate::field::optim::{Rmsprop, RowSubset, TvNorm, total_variation};
 use crate::scene::sh;
 use crate::stylize::colour_map::ColourMap;
 use crate::stylize::colour_transfer::ColourTransfer;
-use crate::util::tensor::{assign_rows, floats, indices, is_host_memory, select_rows, to_vec};
+use crate::util::tensor::{assign_rows, floats, indices, is_host_memory, select_rows, tensor_bytes, to_vec};
 
 /// The rows one optimiser step updates, and where each one's gradient sits
 /// in the step's gradient buffer: every row of the grid (dense; the buffer
@@ -140,6 +140,16 @@ impl StyleField {
         });
         let rms = Tensor::zeros([rows, 3], &grid.device());
         Self { grid, rms, neighbours, touched: Cell::default() }
+    }
+
+    /// Bytes held: the grid (density, colour, its plain density copy,
+    /// occupancy links and coordinates, the far background) and the
+    /// optimiser's state and TV neighbours.
+    pub fn bytes(&self) -> usize {
+        let g = &self.grid;
+        let grid = tensor_bytes(&g.density) + tensor_bytes(&g.sh) + g.density_cpu.len() * 4;
+        let lattice = (g.links.len() + g.coords.len()) * 4 + g.far.as_ref().map_or(0, |f| f.rgb.len() * 4);
+        grid + lattice + tensor_bytes(&self.rms) + self.neighbours.iter().map(|n| n.len() * 4).sum::<usize>()
     }
 
     /// Recolours the field with an affine colour map: a colour

@@ -4,12 +4,13 @@
 //! targets (Ref-NPR), or the style features (ARF).
 
 use anyhow::Result;
+use burn::tensor::Tensor;
 
 use crate::scene::camera::Camera;
 use crate::stylize::Method;
 use crate::stylize::colour_map::ColourMap;
 use crate::stylize::config::WhiteOn;
-use crate::stylize::step::{Guidance, StyleStep, ViewGuide};
+use crate::stylize::step::{ContentFeatures, Guidance, StyleStep, ViewGuide};
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, StoredFeatures, Template};
 use crate::util::image::Image;
 use crate::util::progress::{Event, Phase, Progress};
@@ -118,20 +119,31 @@ pub(crate) fn guides(
             false => colour.map(|c| c.only_edited(&edit_votes, content.width, content.height)),
         };
         matched += colour.as_ref().map_or(0.0, |c| c.matched_fraction / n as f32);
-        let content_features = match keep_content {
-            None => Vec::new(),
-            Some(Content::Render) => raw,
+        let keep = v < st.content_views_kept;
+        let content = match keep_content {
+            None => ContentFeatures::Unused,
+            Some(Content::Render) if keep => ContentFeatures::Kept(store(raw, half_content)),
+            Some(Content::Render) => ContentFeatures::Recomputed(vgg_input.clone()),
             Some(Content::Mapped(_)) => {
-                let mapped = mapped.as_ref().expect("mapped above for Content::Mapped");
-                tcm::image_features(&st.vgg, mapped, &st.ad, &blocks, false)?.0
+                let mapped = mapped.expect("mapped above for Content::Mapped");
+                match keep {
+                    true => ContentFeatures::Kept(store(
+                        tcm::image_features(&st.vgg, &mapped, &st.ad, &blocks, false)?.0,
+                        half_content,
+                    )),
+                    false => ContentFeatures::Recomputed(mapped),
+                }
             }
         };
-        let content =
-            content_features.into_iter().map(|features| StoredFeatures::store(features, half_content)).collect();
         out.push(ViewGuide { content, matches, edit_votes, colour });
         progress.event(Event::Step { phase: Phase::Guides, done: v + 1, total: n, message: String::new() });
     }
     Ok((out, matched))
+}
+
+/// Features kept per block, as f16 when `half`.
+fn store(blocks: Vec<Tensor<2>>, half: bool) -> Vec<StoredFeatures> {
+    blocks.into_iter().map(|features| StoredFeatures::store(features, half)).collect()
 }
 
 /// The TCM template of the references, their content renders from the

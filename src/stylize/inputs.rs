@@ -15,13 +15,11 @@ use crate::scene::data::Dataset;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::region::{PixelRegion, reference_regions};
 use crate::stylize::styles::{arf_colour_transfer, read_styles, style_colour_stats};
-use crate::stylize::tcm::{self, FEATURE_BLOCKS, RELU3};
 use crate::stylize::{Method, StylizeJob};
 use crate::util::image::Image;
-use crate::util::memory::available_memory_bytes;
 use crate::util::progress::{Progress, WarningLog};
 use crate::util::transfer;
-use crate::vgg::{self, VggLayer};
+use crate::vgg;
 
 /// What a stylization starts from: the photoreal run, its dataset and the reference case.
 pub(crate) struct Inputs {
@@ -57,7 +55,7 @@ impl Inputs {
                 job.photo.display()
             );
         }
-        let image_size = preflight(job, &ck, &dataset)?;
+        let image_size = preflight(job, &dataset)?;
         // A local edit's regions, against the render the painting was made
         // over: the photoreal field with its view-dependent bands.
         let regions = match case.is_local() {
@@ -77,9 +75,10 @@ pub(crate) fn keeps_content(job: &StylizeJob) -> bool {
     }
 }
 
-/// Refuses, before any work, views too small for VGG16 and feature caches
-/// that would not fit in memory. Returns the views' size `[width, height]`.
-fn preflight(job: &StylizeJob, ck: &Checkpoint, dataset: &Dataset) -> Result<[usize; 2]> {
+/// Refuses, before any work, views too small for VGG16 (memory is planned
+/// once the inputs are loaded: `stylize::budget`). Returns the views' size
+/// `[width, height]`.
+fn preflight(job: &StylizeJob, dataset: &Dataset) -> Result<[usize; 2]> {
     if dataset.train.is_empty() {
         bail!("the photoreal run's dataset {} has no training views", dataset.root.display());
     }
@@ -93,28 +92,6 @@ fn preflight(job: &StylizeJob, ck: &Checkpoint, dataset: &Dataset) -> Result<[us
         bail!(
             "training views are {width}x{height}: arf.half_resolution needs at least {0}x{0} (VGG16 at half size)",
             2 * vgg::MIN_SIDE
-        );
-    }
-    let grid_bytes = ck.grid.num_rows() as u64 * 3 * 4 * 6; // SH, RMSprop state, gradients
-    // Bytes per kept content feature: f16 with `half_content_features` (on
-    // the CPU backends, whose memory this checks).
-    let content_bytes = match (keeps_content(job), job.config.half_content_features) {
-        (false, _) => 0,
-        (true, true) => 2,
-        (true, false) => 4,
-    };
-    let per_view = feature_cache_bytes(job.method, 1, width, height, content_bytes);
-    let need = per_view * dataset.train.len() as u64 + grid_bytes;
-    if let Some(avail) = available_memory_bytes()
-        && need > avail / 4 * 3
-    {
-        let fit = (avail / 4 * 3).saturating_sub(grid_bytes) / per_view.max(1);
-        bail!(
-            "stylizing {} views of {width}x{height} needs about {:.1} GB for feature caches and the grid, but {:.1} GB is available \
-             (about {fit} views fit): use a lower-resolution photoreal run, or set loss.content = 0 (drops the cached content features)",
-            dataset.train.len(),
-            need as f64 / 1e9,
-            avail as f64 / 1e9
         );
     }
     Ok([width, height])
@@ -170,24 +147,6 @@ pub(crate) fn registration(
         );
     }
     Ok(file)
-}
-
-/// Bytes the per-view feature caches need (raw content features of the
-/// feature blocks, `content_bytes` a number, plus match indices).
-fn feature_cache_bytes(method: Method, views: usize, width: usize, height: usize, content_bytes: usize) -> u64 {
-    let blocks: Vec<&[VggLayer]> = match method {
-        Method::RefNpr => FEATURE_BLOCKS.to_vec(),
-        Method::Arf => vec![&RELU3],
-    };
-    let per_view: usize = blocks
-        .iter()
-        .map(|b| {
-            let [h, w] = tcm::block_size(b, height, width);
-            let c: usize = b.iter().map(|l| l.channels()).sum();
-            h * w * (c * content_bytes + 8)
-        })
-        .sum();
-    (per_view * views) as u64
 }
 
 /// The style images and, for ARF with either colour transfer on, the style's

@@ -31,6 +31,7 @@
 //! photoreal field kept elsewhere), `strokes` (the paintings' strokes at another scale), `run` (`refnpr stylize` from files to
 //! files: the loops, resume points and phase costs).
 
+pub mod budget;
 pub(crate) mod coarse;
 pub mod colour_map;
 pub mod colour_transfer;
@@ -160,6 +161,34 @@ pub struct SampleCacheReport {
     pub cells: usize,
 }
 
+/// What a stylization holds from step to step when a phase ends, by part
+/// (MB): where its memory goes besides each step's own working set and
+/// what the allocator keeps (`memory` beside it has the process's figures).
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct HeldMemory {
+    /// The dataset's photos (training, validation and test views, f32 RGB).
+    pub photos_mb: f64,
+    /// R³'s registered pixels and the reference pixels.
+    pub registration_mb: f64,
+    /// Sample lists on the host (`sample_cache_mb` bounds the training views').
+    pub sample_lists_mb: f64,
+    /// The grid being stylized, its optimiser state and TV neighbours.
+    pub field_mb: f64,
+    /// The guides: content features, TCM matches and colour targets of
+    /// every view, the template.
+    pub guides_mb: f64,
+}
+
+impl HeldMemory {
+    /// One line: each part in MB.
+    pub fn describe(&self) -> String {
+        format!(
+            "held: photos {:.0} MB, registration {:.0} MB, sample lists {:.0} MB, field {:.0} MB, guides {:.0} MB",
+            self.photos_mb, self.registration_mb, self.sample_lists_mb, self.field_mb, self.guides_mb
+        )
+    }
+}
+
 /// The references' colour map in `stylize.json`.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct ColourMapReport {
@@ -221,6 +250,10 @@ pub struct StylizeReport {
     /// Resident and peak memory when each phase ended (registration,
     /// refit, content, image_epochs: the image epochs and the smooth update).
     pub memory: BTreeMap<String, crate::util::memory::MemoryNow>,
+    /// The memory budget's plan (None where the OS gives no memory figures).
+    pub memory_plan: Option<budget::MemoryPlan>,
+    /// What the run held when each phase ended, by part.
+    pub held: BTreeMap<String, HeldMemory>,
     /// What the sample cache (`sample_cache_mb`) holds.
     pub sample_cache: SampleCacheReport,
     /// A local edit (`stylize::region`): the voxels it changed.

@@ -14,6 +14,7 @@ use rand::seq::SliceRandom;
 
 use crate::field::checkpoint;
 use crate::scene::data::Dataset;
+use crate::stylize::budget::{self, MemoryPlan};
 use crate::stylize::coarse::{self, FineStage};
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::guides::{self, ColourSource, Content};
@@ -25,7 +26,7 @@ use crate::stylize::resume::{self, JobKey, ResumeState};
 use crate::stylize::step::{Guidance, StyleStep};
 use crate::stylize::strokes;
 use crate::stylize::styles::is_background;
-use crate::stylize::{CurvePoint, LocalEditReport, Method, StepKind, StylizeJob, StylizeReport};
+use crate::stylize::{CurvePoint, HeldMemory, LocalEditReport, Method, StepKind, StylizeJob, StylizeReport};
 use crate::util::costs::Work;
 use crate::util::diverged;
 use crate::util::files;
@@ -81,7 +82,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         st.restore(state);
     }
     st.image_epochs(&styles, guidance, start, &mut phases, progress)?;
-    let sample_cache = st.step.samples.report(job.config.sample_cache_mb);
+    let sample_cache = st.step.samples.report(st.step.sample_cache_mb);
     st.apply_controls();
     let post_colour_transfer = st.post_colour_transfer(style_colours, progress)?;
     let steps = st.curve.iter().filter(|p| p.phase != StepKind::Refit).count();
@@ -107,6 +108,8 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
         step_profiles: std::mem::take(&mut st.step_profiles),
         peak_rss_mb: peak_rss_mb(),
         memory: phases.memory,
+        memory_plan: st.memory_plan,
+        held: std::mem::take(&mut st.held),
         sample_cache,
         local_edit,
         final_losses: st.curve.iter().rev().find(|p| p.phase != StepKind::Refit).cloned(),
@@ -153,6 +156,10 @@ struct Stylization<'a> {
     step_profiles: BTreeMap<String, Vec<PartTime>>,
     /// Coarse epochs (`schedule.coarse_scale`): the views at full size, for the smooth update.
     fine: Option<FineStage<'a>>,
+    /// What the run held when each phase ended.
+    held: BTreeMap<String, HeldMemory>,
+    /// The memory budget's plan.
+    memory_plan: Option<MemoryPlan>,
 }
 
 impl<'a> Stylization<'a> {
@@ -176,6 +183,8 @@ impl<'a> Stylization<'a> {
             saved_at: None,
             step_profiles: BTreeMap::new(),
             fine,
+            held: BTreeMap::new(),
+            memory_plan: None,
         }
     }
 
@@ -187,6 +196,7 @@ impl<'a> Stylization<'a> {
         phases: &mut PhaseLog,
         progress: &dyn Progress,
     ) -> Result<usize> {
+        self.plan_memory(progress)?;
         match resumed {
             None => {
                 let m = transfer::measure(|| self.refit(progress));
@@ -194,6 +204,7 @@ impl<'a> Stylization<'a> {
                 self.finish_refit()?;
                 let steps = self.curve.iter().filter(|p| p.phase == StepKind::Refit).count();
                 phases.record("refit", m.seconds, PhaseTransfers::new(m.moved, steps));
+                self.held.insert("refit".into(), self.step.held(None));
                 Ok(0)
             }
             Some(state) => {
@@ -206,6 +217,20 @@ impl<'a> Stylization<'a> {
                 Ok(state.image_steps)
             }
         }
+    }
+
+    /// The memory budget's plan, before the sample cache is filled: the
+    /// cache's size and the views whose content features are kept.
+    fn plan_memory(&mut self, progress: &dyn Progress) -> Result<()> {
+        let fine = self.fine.as_ref().map(|f| f.dataset);
+        let references = self.step.samples.registration.references.len();
+        if let Some(plan) = budget::plan(self.job, self.step.dataset(), fine, references)? {
+            progress.info(plan.describe());
+            self.step.sample_cache_mb = plan.sample_cache_mb;
+            self.step.content_views_kept = plan.content_views_kept;
+            self.memory_plan = Some(plan);
+        }
+        Ok(())
     }
 
     /// Ray epochs: refit the degree-0 colour to the photos (MSE, SH TV);
@@ -313,7 +338,10 @@ impl<'a> Stylization<'a> {
         });
         let (guidance, matched) =
             phases.run("content", views, || guides::guidance(&mut self.step, styles, keep, source, progress))?;
-        let cache = self.step.samples.report(self.job.config.sample_cache_mb);
+        let held = self.step.held(Some(&guidance));
+        progress.event(Event::Detail(held.describe()));
+        self.held.insert("content".into(), held);
+        let cache = self.step.samples.report(self.step.sample_cache_mb);
         progress.event(Event::Detail(format!(
             "sample cache: {} of {} views{}, {:.0} MB of {} ({} samples in {} cells)",
             cache.views_cached,
@@ -370,6 +398,7 @@ impl<'a> Stylization<'a> {
             if smooth && smooth_started.is_none() {
                 smooth_started = Some(Instant::now());
                 self.finish_profile("image_epochs");
+                self.held.insert("image_epochs".into(), self.step.held(Some(&guidance)));
                 guides_moved = self.start_smooth_update(styles, &mut guidance, step < start, progress)?;
             }
             let mut order: Vec<usize> = (0..views).collect();
@@ -390,7 +419,9 @@ impl<'a> Stylization<'a> {
             }
         }
         let smooth_secs = smooth_started.map(|t| t.elapsed().as_secs_f64()).unwrap_or(0.0);
-        self.finish_profile(if smooth_started.is_some() { "smooth_update" } else { "image_epochs" });
+        let last = if smooth_started.is_some() { "smooth_update" } else { "image_epochs" };
+        self.finish_profile(last);
+        self.held.insert(last.into(), self.step.held(Some(&guidance)));
         let image_secs = started.elapsed().as_secs_f64() - smooth_secs;
         let smooth_steps = (s.image_epochs - smooth_start) * views;
         phases.record("image_epochs", image_secs, PhaseTransfers::new(image_moved, smooth_start * views));

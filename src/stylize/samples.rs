@@ -219,13 +219,20 @@ impl<'a> SampleCache<'a> {
     /// of the views (one of all). Lego: 50,000 of about a million
     /// registered pixels against one view of 100, first; fern: 50,000 of
     /// 1.9 million against one of 17, after.
-    pub fn cache(&mut self, grid: &RadianceGrid, cfg: &StylizeConfig, method: Method, device: &burn::tensor::Device) {
+    pub fn cache(
+        &mut self,
+        grid: &RadianceGrid,
+        cfg: &StylizeConfig,
+        method: Method,
+        device: &burn::tensor::Device,
+        budget_mb: usize,
+    ) {
         if std::mem::replace(&mut self.cached, true) {
             return;
         }
         // Each march gives up as soon as it would overrun what is left of the
         // budget, so memory never holds more than the budget plus one chunk.
-        let budget = cfg.sample_cache_mb * 1024 * 1024;
+        let budget = budget_mb * 1024 * 1024;
         let mut used = 0usize;
         let on_device = match cfg.samples_on_device {
             Placement::Auto => !is_host_memory(device),
@@ -309,6 +316,23 @@ impl<'a> SampleCache<'a> {
             samples: cached.iter().map(|s| s.num_samples()).sum(),
             cells: cached.iter().map(|s| s.num_cells()).sum(),
         }
+    }
+
+    /// Bytes of the host sample lists held: the cached training views, the
+    /// registered pixels' and the references' (device copies not counted).
+    pub fn lists_bytes(&self) -> usize {
+        let views: usize = self.views.iter().flatten().map(FrozenSamples::bytes).sum();
+        views + self.registered_samples.as_ref().map_or(0, FrozenSamples::bytes) + self.reference_lists.bytes()
+    }
+
+    /// Bytes of what R³ carried: the registration (reference pixels, each
+    /// view's registered pixels), the flat list of registered pixels and
+    /// the reference pixels L_ref uses.
+    pub fn registration_bytes(&self) -> usize {
+        let file = &self.registration;
+        let references: usize = file.references.iter().map(|r| r.colours.len() * 12 + r.hits.len()).sum();
+        let views: usize = file.views.iter().map(|v| v.registration.pixels.len() * (4 + 12 + 2)).sum();
+        references + views + self.registered.len() * 20 + self.reference_pixels.len() * 16
     }
 
     /// Keeps only the reference pixels `keep(reference, pixel)` accepts for

@@ -35,12 +35,12 @@ use crate::stylize::region::{EditRegion, PixelRegion, edit_region, mark_painted_
 use crate::stylize::samples::{PseudoRays, SampleCache};
 use crate::stylize::styles::colour_stats;
 use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, StoredFeatures, Template};
-use crate::stylize::{CurvePoint, Method, StepKind, StylizeJob};
+use crate::stylize::{CurvePoint, HeldMemory, Method, StepKind, StylizeJob};
 use crate::util::image::Image;
 use crate::util::profile::{PartTime, StepProfile};
 use crate::util::progress::{Event, Progress};
 use crate::util::rng::{Stream, step_rng};
-use crate::util::tensor::{floats, scalar, to_vec};
+use crate::util::tensor::{floats, is_host_memory, scalar, tensor_bytes, to_vec};
 use crate::vgg::{Vgg16, VggLayer};
 
 /// The interleaved `[pixels, 3]` gradient of an image loss (planar `[1, 3, H, W]` gradient in).
@@ -70,10 +70,30 @@ impl RaySet<'_> {
     }
 }
 
+/// The content term's fixed features of a view (λ').
+pub(crate) enum ContentFeatures {
+    /// No content term.
+    Unused,
+    /// Raw features per block, kept.
+    Kept(Vec<StoredFeatures>),
+    /// Taken again at each step of the view from the image VGG16 saw (the
+    /// memory budget had no room to keep them: `stylize::budget`).
+    Recomputed(Image),
+}
+
+impl ContentFeatures {
+    fn bytes(&self) -> usize {
+        match self {
+            Self::Unused => 0,
+            Self::Kept(blocks) => blocks.iter().map(StoredFeatures::bytes).sum(),
+            Self::Recomputed(image) => image.rgb.len() * 4,
+        }
+    }
+}
+
 /// Per-view data kept for the image epochs.
 pub struct ViewGuide {
-    /// Raw content features per block (for λ'; empty when unused).
-    pub(crate) content: Vec<StoredFeatures>,
+    pub(crate) content: ContentFeatures,
     /// TCM matches per block (Ref-NPR).
     pub(crate) matches: Vec<Tensor<1, Int>>,
     /// A local edit: per relu3 position, whether it looks like an edited
@@ -83,6 +103,12 @@ pub struct ViewGuide {
 }
 
 impl ViewGuide {
+    /// Bytes of its content features, matches, votes and colour targets.
+    pub fn bytes(&self) -> usize {
+        let matches: usize = self.matches.iter().map(tensor_bytes).sum();
+        self.content.bytes() + matches + self.edit_votes.len() + self.colour.as_ref().map_or(0, ColourTargets::bytes)
+    }
+
     /// L_color's targets of this view (Ref-NPR with the colour loss).
     pub fn colour(&self) -> Option<&ColourTargets> {
         self.colour.as_ref()
@@ -141,6 +167,14 @@ pub struct Guidance {
     pub guides: Vec<ViewGuide>,
 }
 
+impl Guidance {
+    /// Bytes of the template or style features and every view's guide.
+    pub fn bytes(&self) -> usize {
+        let guides: usize = self.guides.iter().map(ViewGuide::bytes).sum();
+        guides + self.template.as_ref().map_or(0, Template::bytes) + self.style_bank.as_ref().map_or(0, tensor_bytes)
+    }
+}
+
 /// Which kernel renders and differentiates the rays, chosen once (`ray_kernel`).
 #[derive(Clone, Copy, PartialEq, Eq)]
 enum RayPass {
@@ -171,6 +205,13 @@ pub struct StyleStep<'a> {
     pub(crate) edit: Option<EditRegion>,
     /// A local edit's regions, one per reference (the template keeps only their positions).
     pub(crate) regions: Option<Vec<PixelRegion>>,
+    /// The sample cache's size, MB: `sample_cache_mb`, or what the memory
+    /// budget leaves of it (`stylize::budget`).
+    pub(crate) sample_cache_mb: usize,
+    /// Views whose content features are kept (in the dataset's order; the
+    /// others' are taken again at each of their steps): all unless the
+    /// memory budget has no room for them.
+    pub(crate) content_views_kept: usize,
 }
 
 impl<'a> StyleStep<'a> {
@@ -204,6 +245,23 @@ impl<'a> StyleStep<'a> {
             profile,
             edit: None,
             regions: None,
+            sample_cache_mb: job.config.sample_cache_mb,
+            content_views_kept: if job.config.keep_content_features { usize::MAX } else { 0 },
+        }
+    }
+
+    /// What this stylization holds now, by part (`guidance`: the guides
+    /// when they are built).
+    pub fn held(&self, guidance: Option<&Guidance>) -> HeldMemory {
+        const MB: f64 = 1024.0 * 1024.0;
+        let d = self.dataset;
+        let photos: usize = d.train.iter().chain(&d.val).chain(&d.test).map(|v| v.rgb.len() * 4).sum();
+        HeldMemory {
+            photos_mb: photos as f64 / MB,
+            registration_mb: self.samples.registration_bytes() as f64 / MB,
+            sample_lists_mb: self.samples.lists_bytes() as f64 / MB,
+            field_mb: self.field.bytes() as f64 / MB,
+            guides_mb: guidance.map_or(0, Guidance::bytes) as f64 / MB,
         }
     }
 
@@ -252,7 +310,7 @@ impl<'a> StyleStep<'a> {
 
     /// Caches the sample lists (once; `samples::SampleCache::cache`).
     pub fn cache_samples(&mut self) {
-        self.samples.cache(&self.field.grid, self.cfg, self.job.method, &self.device);
+        self.samples.cache(&self.field.grid, self.cfg, self.job.method, &self.device, self.sample_cache_mb);
     }
 
     /// The step profile of the phase that just ended (and a fresh one for the next).
@@ -632,6 +690,26 @@ impl<'a> StyleStep<'a> {
         Ok((floats(grad, [rows.len(), 3], &self.device), parts))
     }
 
+    /// The content term's fixed features per block (none in the smooth
+    /// update, which has no content term).
+    fn content_features(&self, content: &ContentFeatures, smooth: bool) -> Result<Vec<Tensor<2>>> {
+        Ok(match content {
+            _ if smooth => Vec::new(),
+            ContentFeatures::Unused => Vec::new(),
+            ContentFeatures::Kept(blocks) => blocks.iter().map(StoredFeatures::tensor).collect(),
+            ContentFeatures::Recomputed(image) => {
+                let blocks: Vec<&[VggLayer]> = match self.job.method {
+                    Method::RefNpr => FEATURE_BLOCKS.to_vec(),
+                    Method::Arf => vec![&RELU3],
+                };
+                // Rounded as kept features are, so a view's loss is the same either way.
+                let half = self.cfg.half_content_features && is_host_memory(&self.device);
+                let raw = tcm::image_features(&self.vgg, image, &self.ad, &blocks, false)?.0;
+                raw.into_iter().map(|f| StoredFeatures::store(f, half).tensor()).collect()
+            }
+        })
+    }
+
     fn image_loss(
         &self,
         image: Tensor<4>,
@@ -642,6 +720,7 @@ impl<'a> StyleStep<'a> {
     ) -> Result<(Tensor<1>, ImageLosses)> {
         let [_, _, h, w] = image.dims();
         let l = &self.cfg.loss;
+        let content = self.profile.time("content_features", || self.content_features(&guide.content, smooth))?;
         let mut parts = LossParts::default();
         let tv = losses::image_tv(image.clone());
         accumulate(&mut parts.image_tv, &tv);
@@ -658,8 +737,8 @@ impl<'a> StyleStep<'a> {
                         let style = losses::cosine_distance(r.clone(), template.guidance(b, &guide.matches[b]));
                         accumulate(&mut parts.feature, &style);
                         total = total + style * weight;
-                        if content_weight > 0.0 && b < guide.content.len() {
-                            let c = losses::content_loss(r, guide.content[b].tensor(), self.cfg.vgg.weights);
+                        if let (true, Some(fixed)) = (content_weight > 0.0, content.get(b)) {
+                            let c = losses::content_loss(r, fixed.clone(), self.cfg.vgg.weights);
                             accumulate(&mut parts.content, &c);
                             total = total + c * (weight * content_weight);
                         }
@@ -688,8 +767,8 @@ impl<'a> StyleStep<'a> {
                 );
                 accumulate(&mut parts.feature, &nnfm);
                 total = total + nnfm * a.nnfm;
-                if let (true, Some(content)) = (a.content > 0.0, guide.content.first()) {
-                    let c = losses::content_loss(render, content.tensor(), self.cfg.vgg.weights);
+                if let (true, Some(fixed)) = (a.content > 0.0, content.first()) {
+                    let c = losses::content_loss(render, fixed.clone(), self.cfg.vgg.weights);
                     accumulate(&mut parts.content, &c);
                     total = total + c * a.content;
                 }

@@ -15,7 +15,7 @@ use serde::Serialize;
 
 use crate::stylize::losses::patch_means;
 use crate::util::image::Image;
-use crate::util::tensor::{floats, indices, select_rows, to_vec};
+use crate::util::tensor::{floats, indices, select_rows, tensor_bytes, to_vec};
 use crate::vgg::features::{block_descriptors, block_matrix, nearest_by_dot};
 use crate::vgg::{FeatureMaps, Vgg16, VggLayer};
 
@@ -215,6 +215,15 @@ fn keep_rows(x: Tensor<2>, rows: Option<&[usize]>) -> Tensor<2> {
 }
 
 impl Template {
+    /// Bytes of its keys and values.
+    pub fn bytes(&self) -> usize {
+        let blocks: usize = self.keys.iter().chain(&self.values).map(tensor_bytes).sum();
+        blocks
+            + tensor_bytes(&self.colour_keys)
+            + tensor_bytes(&self.colour_values)
+            + self.kept_keys.as_ref().map_or(0, tensor_bytes)
+    }
+
     /// The template of `pairs`. A pair with a region contributes only the
     /// positions its edited pixels cover (`edited_cells`), so that TCM and
     /// L_color carry only what was painted: in a local edit a reference's
@@ -377,6 +386,11 @@ pub struct ViewColourTargets {
 }
 
 impl ColourTargets {
+    /// Bytes of its targets, mask and sources.
+    pub fn bytes(&self) -> usize {
+        tensor_bytes(&self.target) + tensor_bytes(&self.mask) + self.source.len() * 8
+    }
+
     /// Targets from the colour map: the mean of `mapped` (the view's
     /// content render through `colour_map::ColourMap`) over each `patch` x
     /// `patch` block, supervised where the content's block is not

@@ -7,6 +7,11 @@ use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
 
 use crate::util::transfer;
 
+/// Bytes a tensor's values take (its element count times its element size).
+pub fn tensor_bytes<const D: usize, K: Basic>(t: &Tensor<D, K>) -> usize {
+    t.shape().num_elements() * t.dtype().size()
+}
+
 /// A float tensor of the given shape from a flat row-major buffer.
 pub fn floats<const D: usize>(values: Vec<f32>, shape: [usize; D], device: &Device) -> Tensor<D> {
     transfer::record_upload(values.len() * 4);
