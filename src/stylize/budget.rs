@@ -6,7 +6,8 @@
 //! the guides every view will hold (content features, TCM matches, colour
 //! targets, the template), the image steps' working set (VGG16's forward
 //! and backward and the renders, with what the allocator keeps of freed
-//! buffers) and the sample cache at its full size. The budget goes to the
+//! buffers) and the sample cache, the views' sample lists sized from the
+//! reference's (marched by then). The budget goes to the
 //! content features first and to the cache (`sample_cache_mb`) with what
 //! is left: views whose features are not kept have them taken again at
 //! each of their steps, views beyond the cache are marched again, which
@@ -30,14 +31,20 @@ const MB: f64 = 1024.0 * 1024.0;
 
 /// What the image steps add to the process besides the guides and the
 /// cache, whatever the views' size: the content phase's and the steps'
-/// freed buffers the allocator keeps, VGG16's gradients
+/// freed buffers the allocator keeps, VGG16's activations and gradients
 /// (`docs/performance.md`, "Memory budget": measured on lego at 200 and
-/// 400 px and fern, with room).
-pub const STEP_BASE_MB: f64 = 768.0;
+/// 400 px and fern; the same at both lego sizes).
+pub const STEP_BASE_MB: f64 = 704.0;
 
-/// And per pixel of the largest view: VGG16's activations and their
-/// gradients up to relu5, the render and its re-render.
-pub const STEP_BYTES_PER_PIXEL: f64 = 2048.0;
+/// And per MB of the largest view's sample lists: a view beyond the cache
+/// marched for its step, the render's and the re-render's per-sample
+/// buffers (fern, with 7 times lego 400's samples a view, adds 1.3 GB).
+pub const STEP_PER_LIST_MB: f64 = 7.0;
+
+/// A view's sample lists against the reference view's, per pixel: views
+/// differ in how much of them the scene covers (lego: the mean view's
+/// lists are 1.16 times `train:0`'s).
+pub const LIST_MARGIN: f64 = 1.25;
 
 /// The share of the machine's free memory a budget takes when none is set.
 pub const FREE_SHARE: f64 = 0.9;
@@ -71,6 +78,8 @@ pub struct MemoryPlan {
     pub content_mb: f64,
     /// The sample cache the budget leaves, at most `sample_cache_mb`.
     pub sample_cache_mb: usize,
+    /// What the cache is predicted to fill: the views' lists, at most `sample_cache_mb`.
+    pub cache_fill_mb: f64,
     /// `sample_cache_mb` as configured.
     pub configured_cache_mb: usize,
     /// The sum of the parts above.
@@ -92,6 +101,8 @@ pub struct PlanInputs {
     pub keep_content_features: bool,
     pub step_mb: f64,
     pub configured_cache_mb: usize,
+    /// The training views' sample lists, all of them (estimated).
+    pub lists_mb: f64,
 }
 
 impl MemoryPlan {
@@ -131,6 +142,7 @@ impl MemoryPlan {
         };
         let content_mb = content_views_kept as f64 * features + (content_views - content_views_kept) as f64 * image;
         let sample_cache_mb = ((budget_mb - fixed - content_mb).floor().max(0.0) as usize).min(configured_cache_mb);
+        let cache_fill_mb = inputs.lists_mb.min(sample_cache_mb as f64);
         Ok(Self {
             budget_mb,
             source,
@@ -141,8 +153,9 @@ impl MemoryPlan {
             content_views,
             content_mb,
             sample_cache_mb,
+            cache_fill_mb,
             configured_cache_mb,
-            predicted_peak_mb: fixed + content_mb + sample_cache_mb as f64,
+            predicted_peak_mb: fixed + content_mb + cache_fill_mb,
         })
     }
 
@@ -190,13 +203,15 @@ pub fn budget_mb(memory_gb: f32, resident_mb: f64) -> Option<(f64, BudgetSource)
 }
 
 /// The plan for a run whose image epochs see `work`'s training views and,
-/// with coarse epochs, whose smooth update sees `fine`'s; None where the
-/// OS gives no memory figures (the cache keeps `sample_cache_mb`).
+/// with coarse epochs, whose smooth update sees `fine`'s, and whose
+/// references' sample lists take `list_bytes_per_ray` a ray; None where
+/// the OS gives no memory figures (the cache keeps `sample_cache_mb`).
 pub(crate) fn plan(
     job: &StylizeJob,
     work: &Dataset,
     fine: Option<&Dataset>,
     references: usize,
+    list_bytes_per_ray: f64,
 ) -> Result<Option<MemoryPlan>> {
     let Some(resident_mb) = crate::util::memory::proc_status_mb("VmRSS:") else { return Ok(None) };
     let Some((budget_mb, source)) = budget_mb(job.config.memory_gb, resident_mb) else { return Ok(None) };
@@ -228,8 +243,9 @@ pub(crate) fn plan(
         content_features_mb: mb(guide_bytes(method, 1, vw, vh, content_bytes) - guide_bytes(method, 1, vw, vh, 0)),
         content_image_mb: mb((vw * vh * 3 * 4) as u64),
         keep_content_features: job.config.keep_content_features,
-        step_mb: step_mb(largest.max(w * h)),
+        step_mb: step_mb(view_lists_mb(list_bytes_per_ray, largest.max(w * h))),
         configured_cache_mb: job.config.sample_cache_mb,
+        lists_mb: views as f64 * view_lists_mb(list_bytes_per_ray, w * h),
     };
     MemoryPlan::new(inputs, budget_mb, source).map(Some)
 }
@@ -273,9 +289,16 @@ pub fn template_bytes(method: Method, references: usize, width: usize, height: u
     (per_reference * references) as u64
 }
 
-/// The image steps' working set at views of `pixels` pixels, MB.
-pub fn step_mb(pixels: usize) -> f64 {
-    STEP_BASE_MB + STEP_BYTES_PER_PIXEL * pixels as f64 / MB
+/// A view's sample lists at `pixels` pixels, MB, estimated from the
+/// references' bytes a ray (with [`LIST_MARGIN`]).
+pub fn view_lists_mb(list_bytes_per_ray: f64, pixels: usize) -> f64 {
+    LIST_MARGIN * list_bytes_per_ray * pixels as f64 / MB
+}
+
+/// The image steps' working set where the largest view's sample lists take
+/// `view_lists_mb`, MB.
+pub fn step_mb(view_lists_mb: f64) -> f64 {
+    STEP_BASE_MB + STEP_PER_LIST_MB * view_lists_mb
 }
 
 /// Bytes to MB.
@@ -297,6 +320,7 @@ mod tests {
             keep_content_features: true,
             step_mb: 600.0,
             configured_cache_mb,
+            lists_mb: 10_000.0,
         }
     }
 
@@ -306,6 +330,10 @@ mod tests {
         let roomy = MemoryPlan::new(inputs(2048), 8000.0, BudgetSource::Set).unwrap();
         assert_eq!((roomy.content_views_kept, roomy.sample_cache_mb), (10, 2048));
         assert_eq!(roomy.predicted_peak_mb, 1800.0 + 200.0 + 2048.0);
+        // Lists smaller than the cache fill only their own size.
+        let small = MemoryPlan::new(PlanInputs { lists_mb: 500.0, ..inputs(2048) }, 8000.0, BudgetSource::Set).unwrap();
+        assert_eq!((small.sample_cache_mb, small.cache_fill_mb), (2048, 500.0));
+        assert_eq!(small.predicted_peak_mb, 1800.0 + 200.0 + 500.0);
         let tight = MemoryPlan::new(inputs(2048), 2500.0, BudgetSource::Set).unwrap();
         assert_eq!((tight.content_views_kept, tight.sample_cache_mb), (10, 500));
         assert!(tight.describe().contains("500 MB of its 2048 MB"), "{}", tight.describe());

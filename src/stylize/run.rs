@@ -224,7 +224,8 @@ impl<'a> Stylization<'a> {
     fn plan_memory(&mut self, progress: &dyn Progress) -> Result<()> {
         let fine = self.fine.as_ref().map(|f| f.dataset);
         let references = self.step.samples.registration.references.len();
-        if let Some(plan) = budget::plan(self.job, self.step.dataset(), fine, references)? {
+        let per_ray = self.step.samples.reference_list_bytes_per_ray();
+        if let Some(plan) = budget::plan(self.job, self.step.dataset(), fine, references, per_ray)? {
             progress.info(plan.describe());
             self.step.sample_cache_mb = plan.sample_cache_mb;
             self.step.content_views_kept = plan.content_views_kept;

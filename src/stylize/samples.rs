@@ -318,6 +318,12 @@ impl<'a> SampleCache<'a> {
         }
     }
 
+    /// The references' sample lists' bytes a ray (marched when the cache
+    /// is made: the memory budget sizes the views' lists from them).
+    pub fn reference_list_bytes_per_ray(&self) -> f64 {
+        self.reference_lists.bytes() as f64 / self.reference_lists.num_rays.max(1) as f64
+    }
+
     /// Bytes of the host sample lists held: the cached training views, the
     /// registered pixels' and the references' (device copies not counted).
     pub fn lists_bytes(&self) -> usize {
