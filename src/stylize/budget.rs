@@ -254,11 +254,8 @@ pub(crate) fn plan(
 /// each feature block its matches and, `content_bytes` per channel, the
 /// content term's kept features; per relu5 position its colour target.
 pub fn guide_bytes(method: Method, views: usize, width: usize, height: usize, content_bytes: usize) -> u64 {
-    let blocks: Vec<&[VggLayer]> = match method {
-        Method::RefNpr => FEATURE_BLOCKS.to_vec(),
-        Method::Arf => vec![&RELU3],
-    };
-    let features: usize = blocks
+    let features: usize = method
+        .feature_blocks()
         .iter()
         .map(|b| {
             let [h, w] = tcm::block_size(b, height, width);

@@ -11,11 +11,9 @@ use crate::stylize::Method;
 use crate::stylize::colour_map::ColourMap;
 use crate::stylize::config::WhiteOn;
 use crate::stylize::step::{ContentFeatures, Guidance, StyleStep, ViewGuide};
-use crate::stylize::tcm::{self, ColourTargets, FEATURE_BLOCKS, RELU3, ReferencePair, StoredFeatures, Template};
+use crate::stylize::tcm::{self, ColourTargets, RELU3, ReferencePair, StoredFeatures, Template};
 use crate::util::image::Image;
 use crate::util::progress::{Event, Phase, Progress};
-use crate::util::tensor::is_host_memory;
-use crate::vgg::VggLayer;
 
 /// Caches the sample lists, then builds the template (Ref-NPR) or the
 /// style features (ARF) and every view's guide; also the fraction of
@@ -71,16 +69,13 @@ pub(crate) fn guides(
     colour: Option<ColourSource>,
     progress: &dyn Progress,
 ) -> Result<(Vec<ViewGuide>, f32)> {
-    let blocks: Vec<&[VggLayer]> = match st.method() {
-        Method::RefNpr => FEATURE_BLOCKS.to_vec(),
-        Method::Arf => vec![&RELU3],
-    };
+    let blocks = st.method().feature_blocks();
     let n = st.dataset().train.len();
     progress.event(Event::Start { phase: Phase::Guides, done: 0, total: n });
     let mut out = Vec::with_capacity(n);
     let mut matched = 0.0;
     let half = st.method() == Method::Arf && st.cfg().arf.half_resolution;
-    let half_content = st.cfg().half_content_features && is_host_memory(&st.device);
+    let half_content = st.half_content_features();
     for v in 0..n {
         let content = st.render_view(v);
         let halved;

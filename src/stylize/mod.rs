@@ -59,7 +59,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::stylize::colour_transfer::ColourTransfer;
 use crate::stylize::config::StylizeConfig;
+use crate::stylize::tcm::{FEATURE_BLOCKS, RELU3};
 use crate::util::backend::BackendKind;
+use crate::vgg::VggLayer;
 
 /// Which stylization.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -70,6 +72,17 @@ pub enum Method {
     RefNpr,
     /// ARF: nearest-neighbour feature matching to a style image.
     Arf,
+}
+
+impl Method {
+    /// The VGG16 layers whose features the method compares, by block: Ref-NPR's
+    /// feature blocks (relu3, relu4), ARF's relu3.
+    pub fn feature_blocks(self) -> Vec<&'static [VggLayer]> {
+        match self {
+            Method::RefNpr => FEATURE_BLOCKS.to_vec(),
+            Method::Arf => vec![&RELU3],
+        }
+    }
 }
 
 impl std::fmt::Display for Method {

@@ -23,6 +23,7 @@ use crate::field::march::MarchParams;
 use crate::field::optim::{Rmsprop, log_lerp};
 use crate::reference::registration::RegistrationFile;
 use crate::scene::data::Dataset;
+use crate::stylize::budget;
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
 use crate::stylize::config::{LrSchedule, StylizeConfig, TransferPixels, WhiteOn};
 use crate::stylize::far::stylized_far;
@@ -250,18 +251,24 @@ impl<'a> StyleStep<'a> {
         }
     }
 
+    /// Whether the content term's fixed features are kept as f16
+    /// (`half_content_features`, on the CPU backends only).
+    pub(crate) fn half_content_features(&self) -> bool {
+        self.cfg.half_content_features && is_host_memory(&self.device)
+    }
+
     /// What this stylization holds now, by part (`guidance`: the guides
     /// when they are built).
     pub fn held(&self, guidance: Option<&Guidance>) -> HeldMemory {
-        const MB: f64 = 1024.0 * 1024.0;
+        let mb = |bytes: usize| budget::mb(bytes as u64);
         let d = self.dataset;
         let photos: usize = d.train.iter().chain(&d.val).chain(&d.test).map(|v| v.rgb.len() * 4).sum();
         HeldMemory {
-            photos_mb: photos as f64 / MB,
-            registration_mb: self.samples.registration_bytes() as f64 / MB,
-            sample_lists_mb: self.samples.lists_bytes() as f64 / MB,
-            field_mb: self.field.bytes() as f64 / MB,
-            guides_mb: guidance.map_or(0, Guidance::bytes) as f64 / MB,
+            photos_mb: mb(photos),
+            registration_mb: mb(self.samples.registration_bytes()),
+            sample_lists_mb: mb(self.samples.lists_bytes()),
+            field_mb: mb(self.field.bytes()),
+            guides_mb: mb(guidance.map_or(0, Guidance::bytes)),
         }
     }
 
@@ -698,12 +705,9 @@ impl<'a> StyleStep<'a> {
             ContentFeatures::Unused => Vec::new(),
             ContentFeatures::Kept(blocks) => blocks.iter().map(StoredFeatures::tensor).collect(),
             ContentFeatures::Recomputed(image) => {
-                let blocks: Vec<&[VggLayer]> = match self.job.method {
-                    Method::RefNpr => FEATURE_BLOCKS.to_vec(),
-                    Method::Arf => vec![&RELU3],
-                };
+                let blocks = self.job.method.feature_blocks();
                 // Rounded as kept features are, so a view's loss is the same either way.
-                let half = self.cfg.half_content_features && is_host_memory(&self.device);
+                let half = self.half_content_features();
                 let raw = tcm::image_features(&self.vgg, image, &self.ad, &blocks, false)?.0;
                 raw.into_iter().map(|f| StoredFeatures::store(f, half).tensor()).collect()
             }
