@@ -370,6 +370,7 @@ fn register_command_writes_its_outputs_and_survives_a_camera_looking_away() {
     c.grid.initial_res = [24; 3];
     c.grid.upsample_steps = vec![];
     c.grid.upsample_res = vec![];
+    c.grid.voxels_per_pixel = 0.0;
     c.grid.sh_degree = 0;
     c.optim.steps = 60;
     c.optim.batch_rays = 1024;

@@ -38,7 +38,17 @@ pub struct GridConfig {
     /// after the last upsampling; it starts halved once per upsampling step
     /// and doubles with the grid (`far_resolution_at`).
     pub far_resolution: [usize; 2],
+    /// The grid follows the images: the fewest voxels the last resolution
+    /// puts across each pixel of a training view (`follow_images`). Where
+    /// the views are large enough that it falls short, every upsampling
+    /// resolution grows in proportion, up to about [`MAX_FOLLOWED_POINTS`]; the
+    /// schedule as written is the floor. 0: the resolutions as written.
+    pub voxels_per_pixel: f32,
 }
+
+/// The most lattice points a grid that follows the images grows to: 512³,
+/// the authors' synthetic grid at 800 px (its links alone take 512 MB).
+pub const MAX_FOLLOWED_POINTS: usize = 512 * 512 * 512;
 
 /// When a fit learns a far background (`GridConfig::far_background`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -58,6 +68,40 @@ impl GridConfig {
         let to_come = self.upsample_steps.len().saturating_sub(upsamplings).min(16);
         self.far_resolution.map(|r| (r >> to_come).max(1))
     }
+
+    /// The resolution the schedule ends at.
+    pub fn final_res(&self) -> [usize; 3] {
+        *self.upsample_res.last().unwrap_or(&self.initial_res)
+    }
+
+    /// Grows the schedule's resolutions for views spanning `pixels_across`
+    /// pixels of the box along x, y and z (0: an axis not measured in
+    /// pixels, NDC's depth) until the last one holds `voxels_per_pixel`
+    /// voxels across each pixel, in proportion on every axis (the
+    /// upsampling resolutions, or the initial one where there are none),
+    /// rounded up to multiples of 16, up to about [`MAX_FOLLOWED_POINTS`]. Returns the
+    /// factor applied (1: unchanged, the images are no larger than the
+    /// schedule was written for).
+    pub fn follow_images(&mut self, pixels_across: [f32; 3]) -> f32 {
+        let last = self.final_res();
+        let wanted = (0..3)
+            .map(|axis| self.voxels_per_pixel * pixels_across[axis] / last[axis] as f32)
+            .filter(|ratio| ratio.is_finite())
+            .fold(1.0f32, f32::max);
+        let points = last.iter().product::<usize>() as f32;
+        let scale = wanted.min((MAX_FOLLOWED_POINTS as f32 / points).cbrt().max(1.0));
+        if scale <= 1.0 {
+            return 1.0;
+        }
+        let grow = |res: &mut [usize; 3]| {
+            *res = res.map(|r| ((r as f32 * scale / 16.0).ceil() as usize * 16).clamp(r, 2048));
+        };
+        match self.upsample_res.is_empty() {
+            true => grow(&mut self.initial_res),
+            false => self.upsample_res.iter_mut().for_each(grow),
+        }
+        scale
+    }
 }
 
 impl Default for GridConfig {
@@ -71,6 +115,7 @@ impl Default for GridConfig {
             prune_threshold: 1.0,
             far_background: FarBackground::Auto,
             far_resolution: [512, 256],
+            voxels_per_pixel: 0.9,
         }
     }
 }
@@ -205,6 +250,11 @@ impl TrainConfig {
                 c.grid.initial_res = [192, 176, 32];
                 c.grid.upsample_steps = vec![250];
                 c.grid.upsample_res = vec![[384, 352, 64]];
+                // As written at every size: fern's grid is 66 % active (a
+                // forward-facing box is seen everywhere), so following
+                // 1008x756 views (8x the lattice) would take ~26 GB, and
+                // no real capture at that size is here to measure its gain.
+                c.grid.voxels_per_pixel = 0.0;
                 c.optim.steps = 3000;
                 c.optim.tv_density = 5e-4;
                 c.optim.tv_sh = 5e-3;
@@ -230,6 +280,19 @@ impl TrainConfig {
         Self::from_toml_str(&config::read(path)?, base, &path.display().to_string())
     }
 
+    /// The fit of views larger than the schedule was written for
+    /// (`GridConfig::follow_images`): the grid grows by a factor s per axis
+    /// and the steps by s², so that each voxel's face, s² times smaller,
+    /// is crossed by as many rays as at the written size. Returns s (1:
+    /// unchanged).
+    pub fn follow_images(&mut self, pixels_across: [f32; 3]) -> f32 {
+        let scale = self.grid.follow_images(pixels_across);
+        if scale > 1.0 {
+            self.optim.steps = (self.optim.steps as f32 * scale * scale).round() as usize;
+        }
+        scale
+    }
+
     /// Checks every value is in range.
     pub fn validate(&self) -> Result<()> {
         let g = &self.grid;
@@ -252,6 +315,9 @@ impl TrainConfig {
         }
         if !(g.init_density.is_finite() && g.prune_threshold.is_finite() && g.prune_threshold >= 0.0) {
             bail!("grid.init_density must be finite and grid.prune_threshold >= 0");
+        }
+        if !(g.voxels_per_pixel.is_finite() && (0.0..=8.0).contains(&g.voxels_per_pixel)) {
+            bail!("grid.voxels_per_pixel must be between 0 and 8, got {}", g.voxels_per_pixel);
         }
         if g.far_resolution.iter().any(|&r| !(1..=4096).contains(&r)) {
             bail!("grid.far_resolution must be between 1 and 4096 texels per axis, got {:?}", g.far_resolution);
@@ -298,5 +364,40 @@ impl TrainConfig {
             bail!("checkpoint_every and render_chunk must be positive");
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Lego's box at 200, 400 and 800 px spans about 207, 414 and 827
+    /// pixels; fern's NDC box at 504x378 about 751 x 510 (x, y).
+    #[test]
+    fn the_grid_follows_larger_images_and_keeps_the_written_schedule_for_smaller() {
+        let blender = || TrainConfig::for_kind(DatasetKind::Blender).grid;
+        let mut at_200 = blender();
+        assert_eq!(at_200.follow_images([207.0; 3]), 1.0);
+        assert_eq!(at_200, blender());
+        let mut at_400 = TrainConfig::for_kind(DatasetKind::Blender);
+        let scale = at_400.follow_images([414.0; 3]);
+        assert!((1.4..1.5).contains(&scale), "{scale}");
+        assert_eq!(at_400.grid.upsample_res, vec![[192; 3], [384; 3]]);
+        assert_eq!(at_400.grid.initial_res, [64; 3]);
+        assert_eq!(at_400.optim.steps, (3600.0 * scale * scale).round() as usize);
+        let mut at_800 = blender();
+        at_800.follow_images([827.0; 3]);
+        assert_eq!(at_800.final_res(), [512; 3], "capped at the authors' 512³");
+        let mut written = blender();
+        written.voxels_per_pixel = 0.0;
+        assert_eq!(written.follow_images([827.0; 3]), 1.0);
+
+        // NDC's depth is not across pixels: it grows with x and y.
+        let mut llff = TrainConfig::for_kind(DatasetKind::Llff).grid;
+        assert_eq!(llff.follow_images([1502.0, 1020.0, 0.0]), 1.0, "LLFF's grid is as written");
+        llff.voxels_per_pixel = 0.5;
+        assert_eq!(llff.follow_images([751.0, 510.0, 0.0]), 1.0);
+        llff.follow_images([1502.0, 1020.0, 0.0]);
+        assert_eq!(llff.final_res(), [752, 704, 128]);
     }
 }

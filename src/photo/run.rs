@@ -176,6 +176,7 @@ fn start(
     progress: &dyn Progress,
 ) -> Result<Trainer> {
     let device = backend.open(progress)?;
+    let config = following_images(config, dataset, progress);
     match resume_from {
         Some(ckpt) => {
             let mut t = Trainer::resume(dataset, ckpt, &device)?;
@@ -206,6 +207,24 @@ fn start(
             Trainer::new(dataset, config, &device)
         }
     }
+}
+
+/// `config` for `dataset`'s views (`TrainConfig::follow_images`: a finer
+/// grid and more steps for views larger than the schedule was written
+/// for), saying so when it changes. A resumed run takes the same steps.
+fn following_images(mut config: TrainConfig, dataset: &Dataset, progress: &dyn Progress) -> TrainConfig {
+    let (written, steps) = (config.grid.final_res(), config.optim.steps);
+    let scale = config.follow_images(dataset.box_pixels_across());
+    if scale > 1.0 {
+        progress.info(format!(
+            "the grid follows the images: {:?} at the end instead of {written:?}, {} steps instead of {steps} \
+             ([grid] voxels_per_pixel = {}; 0 keeps the schedule as written)",
+            config.grid.final_res(),
+            config.optim.steps,
+            config.grid.voxels_per_pixel
+        ));
+    }
+    config
 }
 
 /// What a run says when its grid outgrows the device's buffers and moves to host memory.

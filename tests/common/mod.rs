@@ -84,8 +84,9 @@ pub fn central_difference(x: &[f32], i: usize, h: f32, loss: impl Fn(&[f32]) -> 
 }
 
 /// The Blender defaults cut down for a quick fit in the tests: `coarse`³
-/// voxels upsampled to `fine`³ at step `upsample_at`, SH degree 1, `steps`
-/// steps of `batch_rays` rays, a 20-step learning-rate ramp, one checkpoint.
+/// voxels upsampled to `fine`³ at step `upsample_at` (as written: the grid
+/// does not follow the images), SH degree 1, `steps` steps of `batch_rays`
+/// rays, a 20-step learning-rate ramp, one checkpoint.
 pub fn quick_blender_config(
     coarse: usize,
     fine: usize,
@@ -97,6 +98,7 @@ pub fn quick_blender_config(
     c.grid.initial_res = [coarse; 3];
     c.grid.upsample_steps = vec![upsample_at];
     c.grid.upsample_res = vec![[fine; 3]];
+    c.grid.voxels_per_pixel = 0.0;
     c.grid.sh_degree = 1;
     c.optim.steps = steps;
     c.optim.batch_rays = batch_rays;

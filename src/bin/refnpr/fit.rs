@@ -32,7 +32,7 @@ pub struct TrainArgs {
     /// Continue from OUT/checkpoint.bin if it exists (with --steps: extend the run to that many steps).
     #[arg(long)]
     pub resume: bool,
-    /// The number of steps ([optim] steps).
+    /// The number of steps ([optim] steps; for views larger than the grid's schedule was written for, times the square of the grid's growth, as a line says: `[grid] voxels_per_pixel = 0` keeps it exact).
     #[arg(long)]
     pub steps: Option<usize>,
     /// A COLMAP capture around the scene: fit it (OUT/first_fit), align its cameras to that field

@@ -147,6 +147,29 @@ impl Dataset {
         self.train.iter().map(|v| v.camera.intrinsics.width as f64 * v.camera.intrinsics.height as f64).sum()
     }
 
+    /// How many pixels of a training view the grid's box spans along x, y
+    /// and z at its centre (the median view): what the fit's grid follows
+    /// (`GridConfig::follow_images`). A forward-facing scene's box is in
+    /// NDC, where ±1 in x and y is the reference camera's image edge: x
+    /// and y at half the image's width and height per unit, z 0 (depth is
+    /// not across pixels).
+    pub fn box_pixels_across(&self) -> [f32; 3] {
+        let extent = self.bbox_max - self.bbox_min;
+        if let Some(ndc) = &self.ndc {
+            return [extent.x * ndc.width / 2.0, extent.y * ndc.height / 2.0, 0.0];
+        }
+        let centre = (self.bbox_min + self.bbox_max) / 2.0;
+        let mut per_unit: Vec<f32> = (self.train.iter())
+            .map(|v| v.camera.intrinsics.fx / (v.camera.c2w.w_axis.truncate() - centre).length().max(1e-6))
+            .filter(|p| p.is_finite())
+            .collect();
+        if per_unit.is_empty() {
+            return [0.0; 3];
+        }
+        per_unit.sort_by(f32::total_cmp);
+        (extent * per_unit[per_unit.len() / 2]).to_array()
+    }
+
     /// The dataset with its training views `n` times smaller: each pixel the
     /// mean of an `n` x `n` block, the cameras to match
     /// ([`Intrinsics::downscaled`]); the test and validation views stay.
