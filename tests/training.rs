@@ -707,3 +707,60 @@ fn host_tv_gradient_and_rmsprop_match_the_tensor_versions() {
         assert_ne!(param_h, (0..50 * 3).map(|i| (i % 11) as f32 / 4.0).collect::<Vec<_>>(), "the step moved the rows");
     }
 }
+
+/// A fit of views larger than its schedule was written for gets a finer
+/// grid and more steps (`[grid] voxels_per_pixel`): the tiny scene's 32 px
+/// views span about 34 pixels of the box, more than a 16³ grid holds at
+/// 0.9 voxels a pixel; at 0 the schedule is kept as written.
+#[test]
+fn the_grid_and_the_steps_follow_views_larger_than_the_schedule() {
+    let t = TempDir::new("follow");
+    let ds = tiny_scene(&t.path().join("scene"));
+    let across = ds.box_pixels_across();
+    assert!(across.iter().all(|&p| (25.0..45.0).contains(&p)), "{across:?}");
+    let mut cfg = common::quick_blender_config(8, 16, 10, 20, 512);
+    cfg.grid.voxels_per_pixel = 0.9;
+    let m = run_training(&ds, cfg.clone(), &t.path().join("followed"), common::backend(), false, &refnpr::Quiet)
+        .unwrap();
+    let mut expected = cfg.clone();
+    let scale = expected.follow_images(across);
+    assert!(scale > 1.5, "{scale}");
+    assert_eq!(m.grid_res, expected.grid.final_res());
+    assert!(m.grid_res[0] >= 32, "{:?}", m.grid_res);
+    assert_eq!(m.steps, expected.optim.steps);
+    assert!(m.steps > 20 * 2, "{}", m.steps);
+    cfg.grid.voxels_per_pixel = 0.0;
+    let m = run_training(&ds, cfg, &t.path().join("written"), common::backend(), false, &refnpr::Quiet).unwrap();
+    assert_eq!((m.grid_res, m.steps), ([16; 3], 20));
+}
+
+/// `refnpr train --downscale N` trains on the images N times smaller (the
+/// config's `[data] downscale`), and refuses 0 naming the key.
+#[test]
+fn train_downscale_trains_on_smaller_images() {
+    let t = TempDir::new("downscale");
+    tiny_scene(&t.path().join("scene"));
+    let config_file = t.path().join("config.toml");
+    std::fs::write(&config_file, toml::to_string(&tiny_config(4)).unwrap()).unwrap();
+    let train = |n: &str, out: &std::path::Path| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_refnpr"))
+            .args(["train", "--backend", "flex", "--steps", "4", "--downscale", n, "--data"])
+            .arg(t.path().join("scene"))
+            .arg("--out")
+            .arg(out)
+            .arg("--config")
+            .arg(&config_file)
+            .output()
+            .unwrap()
+    };
+    let out = t.path().join("half");
+    let done = train("2", &out);
+    assert!(done.status.success(), "{}", String::from_utf8_lossy(&done.stderr));
+    let saved = std::fs::read_to_string(out.join("config.toml")).unwrap();
+    assert!(saved.contains("downscale = 2"), "{saved}");
+    assert_eq!(image::image_dimensions(out.join("test/0000.png")).unwrap(), (16, 16));
+    let refused = train("0", &t.path().join("none"));
+    assert!(!refused.status.success());
+    let err = String::from_utf8_lossy(&refused.stderr);
+    assert!(err.contains("downscale"), "{err}");
+}

@@ -35,6 +35,10 @@ pub struct TrainArgs {
     /// The number of steps ([optim] steps; for views larger than the grid's schedule was written for, times the square of the grid's growth, as a line says: `[grid] voxels_per_pixel = 0` keeps it exact).
     #[arg(long)]
     pub steps: Option<usize>,
+    /// Train on the images this many times smaller ([data] downscale): LLFF picks images_N/ (fern at
+    /// 1008x756 is 4, the default 8), or resizes images/ by N; Blender, NSVF and captures resize by N.
+    #[arg(long)]
+    pub downscale: Option<u32>,
     /// A COLMAP capture around the scene: fit it (OUT/first_fit), align its cameras to that field
     /// (`refine-poses`), write OUT/scene_refined and fit that in OUT (twice the time; sharper poses).
     #[arg(long, conflicts_with = "resume")]
@@ -43,16 +47,18 @@ pub struct TrainArgs {
 
 /// `refnpr train`.
 pub fn train(args: TrainArgs, progress: &Console) -> Result<()> {
-    let TrainArgs { data, out, config, backend, resume, steps, refine_poses } = args;
+    let TrainArgs { data, out, config, backend, resume, steps, downscale, refine_poses } = args;
     let backend = backend_or_env(backend, progress)?;
-    let how = TrainHow { resume, steps, refine_poses };
+    let how = TrainHow { resume, steps, downscale, refine_poses };
     run_train(&data, &out, config.as_deref(), backend, how, progress)
 }
 
-/// How `refnpr train` runs: resumed, for how many steps, with its poses refined.
+/// How `refnpr train` runs: resumed, for how many steps, on images how
+/// many times smaller, with its poses refined.
 struct TrainHow {
     resume: bool,
     steps: Option<usize>,
+    downscale: Option<u32>,
     refine_poses: bool,
 }
 
@@ -72,8 +78,11 @@ fn run_train(
     };
     if let Some(s) = how.steps {
         cfg.optim.steps = s;
-        cfg.validate()?;
     }
+    if let Some(n) = how.downscale {
+        cfg.data.downscale = n;
+    }
+    cfg.validate()?;
     let dataset = data::load(dir, &cfg.data)?;
     for w in &dataset.warnings {
         progress.warning(w.clone());
