@@ -720,8 +720,8 @@ fn the_grid_and_the_steps_follow_views_larger_than_the_schedule() {
     assert!(across.iter().all(|&p| (25.0..45.0).contains(&p)), "{across:?}");
     let mut cfg = common::quick_blender_config(8, 16, 10, 20, 512);
     cfg.grid.voxels_per_pixel = 0.9;
-    let m = run_training(&ds, cfg.clone(), &t.path().join("followed"), common::backend(), false, &refnpr::Quiet)
-        .unwrap();
+    let m =
+        run_training(&ds, cfg.clone(), &t.path().join("followed"), common::backend(), false, &refnpr::Quiet).unwrap();
     let mut expected = cfg.clone();
     let scale = expected.follow_images(across);
     assert!(scale > 1.5, "{scale}");
