@@ -711,7 +711,8 @@ fn host_tv_gradient_and_rmsprop_match_the_tensor_versions() {
 /// A fit of views larger than its schedule was written for gets a finer
 /// grid and more steps (`[grid] voxels_per_pixel`): the tiny scene's 32 px
 /// views span about 34 pixels of the box, more than a 16³ grid holds at
-/// 0.9 voxels a pixel; at 0 the schedule is kept as written.
+/// 0.9 voxels a pixel; at 0 the schedule is kept as written, and a resumed
+/// run keeps the count it was made with.
 #[test]
 fn the_grid_and_the_steps_follow_views_larger_than_the_schedule() {
     let t = TempDir::new("follow");
@@ -729,9 +730,17 @@ fn the_grid_and_the_steps_follow_views_larger_than_the_schedule() {
     assert!(m.grid_res[0] >= 32, "{:?}", m.grid_res);
     assert_eq!(m.steps, expected.optim.steps);
     assert!(m.steps > 20 * 2, "{}", m.steps);
-    cfg.grid.voxels_per_pixel = 0.0;
-    let m = run_training(&ds, cfg, &t.path().join("written"), common::backend(), false, &refnpr::Quiet).unwrap();
+    // Resumed with the same command, each run keeps its own count: the
+    // followed one its grown steps, one made as written its 20.
+    let m =
+        run_training(&ds, cfg.clone(), &t.path().join("followed"), common::backend(), true, &refnpr::Quiet).unwrap();
+    assert_eq!(m.steps, expected.optim.steps);
+    let mut written = cfg.clone();
+    written.grid.voxels_per_pixel = 0.0;
+    let m = run_training(&ds, written, &t.path().join("written"), common::backend(), false, &refnpr::Quiet).unwrap();
     assert_eq!((m.grid_res, m.steps), ([16; 3], 20));
+    let m = run_training(&ds, cfg, &t.path().join("written"), common::backend(), true, &refnpr::Quiet).unwrap();
+    assert_eq!((m.grid_res, m.steps), ([16; 3], 20), "a run made as written is not extended on resume");
 }
 
 /// `refnpr train --downscale N` trains on the images N times smaller (the

@@ -176,15 +176,18 @@ fn start(
     progress: &dyn Progress,
 ) -> Result<Trainer> {
     let device = backend.open(progress)?;
-    let config = following_images(config, dataset, progress);
+    let followed = following_images(config.clone(), dataset);
     match resume_from {
         Some(ckpt) => {
             let mut t = Trainer::resume(dataset, ckpt, &device)?;
             progress.info(format!("resuming {} at step {}", ckpt.display(), t.step));
             // The command's step count wins (the same command resumes where it
-            // stopped; a larger count extends a finished run); every other
+            // stopped; a larger count extends a finished run), grown as the
+            // grid followed the images if the checkpoint's did (a run made
+            // with the schedule as written keeps its count); every other
             // setting is the checkpoint's, which its grid was made with.
-            let wanted = config.optim.steps;
+            let grew = t.config.grid.final_res() == followed.grid.final_res();
+            let wanted = if grew { followed.optim.steps } else { config.optim.steps };
             if wanted != t.config.optim.steps {
                 ensure!(
                     wanted >= t.step,
@@ -204,26 +207,26 @@ fn start(
         None => {
             let (_, why) = far_decision(dataset, &config.grid)?;
             progress.info(format!("far background: {why}"));
-            Trainer::new(dataset, config, &device)
+            if followed != config {
+                progress.info(format!(
+                    "the grid follows the images: {:?} at the end instead of {:?}, {} steps instead of {} \
+                     ([grid] voxels_per_pixel = {}; 0 keeps the schedule as written)",
+                    followed.grid.final_res(),
+                    config.grid.final_res(),
+                    followed.optim.steps,
+                    config.optim.steps,
+                    config.grid.voxels_per_pixel
+                ));
+            }
+            Trainer::new(dataset, followed, &device)
         }
     }
 }
 
 /// `config` for `dataset`'s views (`TrainConfig::follow_images`: a finer
-/// grid and more steps for views larger than the schedule was written
-/// for), saying so when it changes. A resumed run takes the same steps.
-fn following_images(mut config: TrainConfig, dataset: &Dataset, progress: &dyn Progress) -> TrainConfig {
-    let (written, steps) = (config.grid.final_res(), config.optim.steps);
-    let scale = config.follow_images(dataset.box_pixels_across());
-    if scale > 1.0 {
-        progress.info(format!(
-            "the grid follows the images: {:?} at the end instead of {written:?}, {} steps instead of {steps} \
-             ([grid] voxels_per_pixel = {}; 0 keeps the schedule as written)",
-            config.grid.final_res(),
-            config.optim.steps,
-            config.grid.voxels_per_pixel
-        ));
-    }
+/// grid and more steps for views larger than the schedule was written for).
+fn following_images(mut config: TrainConfig, dataset: &Dataset) -> TrainConfig {
+    config.follow_images(dataset.box_pixels_across());
     config
 }
 
