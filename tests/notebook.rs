@@ -131,6 +131,14 @@ fn the_notebook_stages_chain_like_the_cli() {
     other.optim.steps = 30;
     let refit = Photo::fit_or_load(&scene, other, t.path().join("photo30"), backend).unwrap();
     assert_eq!(refit.metrics.as_ref().unwrap().steps, 30);
+    // A run whose grid followed the images (more steps than written) is loaded again too.
+    let mut follows = train_config(&common::quick_blender_config(8, 12, 10, 20, 1024), "").unwrap();
+    follows.grid.voxels_per_pixel = 0.9;
+    let grown = Photo::fit_or_load(&scene, follows.clone(), t.path().join("grown"), backend).unwrap();
+    let grown_metrics = grown.metrics.as_ref().unwrap();
+    assert!(grown_metrics.steps > 20, "{} steps: the grid did not follow the images", grown_metrics.steps);
+    let again = Photo::fit_or_load(&scene, follows, t.path().join("grown"), backend).unwrap();
+    assert_eq!(again.metrics.as_ref().unwrap().train_seconds, grown_metrics.train_seconds, "loaded, not fitted again");
 
     // A scene loaded at half size is fitted, and reloaded, at half size.
     let half = Scene::load_with(&scene.dir, &LoadOptions { downscale: 2, ..LoadOptions::default() }).unwrap();

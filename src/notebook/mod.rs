@@ -274,10 +274,14 @@ impl Photo {
     ) -> Result<Photo> {
         let out = out.as_ref();
         let config = TrainConfig { data: scene.options, ..config };
+        // A run saves the schedule it ran: grown where the grid followed
+        // the images (`TrainConfig::follow_images`).
+        let mut followed = config.clone();
+        followed.follow_images(scene.dataset.box_pixels_across());
         let same_config = std::fs::read_to_string(out.join("config.toml"))
             .ok()
             .and_then(|text| toml::from_str::<TrainConfig>(&text).ok())
-            .is_some_and(|saved| saved == config);
+            .is_some_and(|saved| saved == followed);
         if same_config && out.join("metrics.json").exists() {
             let photo = Photo::load(out, backend)?;
             if photo.dataset.root == scene.dataset.root {
