@@ -276,8 +276,7 @@ impl Photo {
         let config = TrainConfig { data: scene.options, ..config };
         // A run saves the schedule it ran: grown where the grid followed
         // the images (`TrainConfig::follow_images`).
-        let mut followed = config.clone();
-        followed.follow_images(scene.dataset.box_pixels_across());
+        let followed = config.for_views(&scene.dataset);
         let same_config = std::fs::read_to_string(out.join("config.toml"))
             .ok()
             .and_then(|text| toml::from_str::<TrainConfig>(&text).ok())

@@ -293,6 +293,14 @@ impl TrainConfig {
         scale
     }
 
+    /// This config for `dataset`'s views: [`TrainConfig::follow_images`] on
+    /// the pixels its training views span of the box.
+    pub fn for_views(&self, dataset: &crate::scene::data::Dataset) -> TrainConfig {
+        let mut config = self.clone();
+        config.follow_images(dataset.box_pixels_across());
+        config
+    }
+
     /// Checks every value is in range.
     pub fn validate(&self) -> Result<()> {
         let g = &self.grid;

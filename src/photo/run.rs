@@ -176,7 +176,7 @@ fn start(
     progress: &dyn Progress,
 ) -> Result<Trainer> {
     let device = backend.open(progress)?;
-    let followed = following_images(config.clone(), dataset);
+    let followed = config.for_views(dataset);
     match resume_from {
         Some(ckpt) => {
             let mut t = Trainer::resume(dataset, ckpt, &device)?;
@@ -221,13 +221,6 @@ fn start(
             Trainer::new(dataset, followed, &device)
         }
     }
-}
-
-/// `config` for `dataset`'s views (`TrainConfig::follow_images`: a finer
-/// grid and more steps for views larger than the schedule was written for).
-fn following_images(mut config: TrainConfig, dataset: &Dataset) -> TrainConfig {
-    config.follow_images(dataset.box_pixels_across());
-    config
 }
 
 /// What a run says when its grid outgrows the device's buffers and moves to host memory.
