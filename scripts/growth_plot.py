@@ -29,6 +29,12 @@ PARTS = [
 PHASES = ["registration", "refit", "content", "image_epochs", "smooth_update"]
 
 
+def gb(mib):
+    """The reports' MB (MiB) as docs/performance.md quotes `/usr/bin/time -v`'s
+    peak: its kilobytes (KiB) over a million."""
+    return mib * 1024 / 1e6
+
+
 def load_run(label, spec):
     out, _, photo = spec.partition(":")
     styl = json.loads((Path(out) / "stylize.json").read_text())
@@ -36,6 +42,9 @@ def load_run(label, spec):
     profile = styl["step_profiles"].get("smooth_update") or []
     steps = next((p["calls"] for p in profile if p["part"] == "view_samples"), 0)
     parts = {p["part"]: p["seconds"] / steps for p in profile if steps}
+    # The smooth update's own R³ and guides (at the views' size): its wall
+    # time less its steps' timed parts.
+    smooth_guides_s = styl["seconds"].get("smooth_update", 0.0) - sum(p["seconds"] for p in profile)
     run = {
         "label": label,
         "pixels": w * h,
@@ -44,6 +53,8 @@ def load_run(label, spec):
         "coarse": styl["config"]["schedule"].get("coarse_scale", 1),
         "parts": parts,
         "phases": styl["seconds"],
+        "guides_s": styl["seconds"].get("content", float("nan")),
+        "smooth_guides_s": smooth_guides_s,
         "total_s": styl["total_seconds"],
         "peak_mb": styl["peak_rss_mb"],
     }
@@ -58,14 +69,16 @@ def load_run(label, spec):
 def table(runs):
     head = ["run", "view size", "views", "coarse"]
     head += [f"{name} (s a step)" for name, _ in PARTS]
+    head += ["guides, epochs' size (s)", "smooth update's R³ + guides (s)"]
     head += ["stylize wall", "stylize peak", "fit wall", "fit peak"]
     lines = ["| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     for r in runs:
         cells = [r["label"], r["size"], str(r["views"]), str(r["coarse"])]
         cells += [f"{r['parts'].get(name, float('nan')):.3f}" for name, _ in PARTS]
-        cells += [f"{r['total_s'] / 60:.1f} min", f"{r['peak_mb'] / 1024:.2f} GB"]
+        cells += [f"{r['guides_s']:.0f}", f"{r['smooth_guides_s']:.0f}"]
+        cells += [f"{r['total_s'] / 60:.1f} min", f"{gb(r['peak_mb']):.2f} GB"]
         if "fit_s" in r:
-            cells += [f"{r['fit_s'] / 60:.1f} min", f"{r['fit_peak_mb'] / 1024:.2f} GB"]
+            cells += [f"{r['fit_s'] / 60:.1f} min", f"{gb(r['fit_peak_mb']):.2f} GB"]
         else:
             cells += ["", ""]
         lines.append("| " + " | ".join(cells) + " |")
@@ -82,23 +95,27 @@ def plot(runs, path):
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.8))
     px = [r["pixels"] / 1e3 for r in runs]
     for name, words in PARTS:
-        left.plot(px, [r["parts"].get(name, float("nan")) for r in runs], "o-", label=words)
+        # A part under a millisecond (a march the cache spared) is left off the log scale.
+        secs = [r["parts"].get(name, float("nan")) for r in runs]
+        left.plot(px, [t if t >= 1e-3 else float("nan") for t in secs], "o-", label=words)
+    left.plot(px, [r["smooth_guides_s"] / r["views"] for r in runs], "s--",
+              label="the smooth update's R³ + guides, a view")
     first = runs[0]["parts"].get("image_losses_vgg")
     if first:
         left.plot(px, [first * p / px[0] for p in px], "k:", label="proportional to the pixels")
     left.set(xscale="log", yscale="log", xlabel="pixels per view (thousands)",
-             ylabel="seconds per smooth-update step", title="A step's parts at the views' own size")
+             ylabel="seconds per smooth-update step (per view)", title="A step's parts at the views' own size")
     left.legend(fontsize=7)
     for x, r in zip(px, runs):
         left.annotate(r["label"], (x, r["parts"].get("image_losses_vgg", 1)), fontsize=6,
                       textcoords="offset points", xytext=(3, 6))
     total = [r["pixels"] * r["views"] / 1e6 for r in runs]
-    right.plot(total, [r["peak_mb"] / 1024 for r in runs], "o-", label="stylization peak")
-    fits = [(t, r["fit_peak_mb"] / 1024) for t, r in zip(total, runs) if "fit_peak_mb" in r]
+    right.plot(total, [gb(r["peak_mb"]) for r in runs], "o", label="stylization peak")
+    fits = [(t, gb(r["fit_peak_mb"])) for t, r in zip(total, runs) if "fit_peak_mb" in r]
     if fits:
-        right.plot(*zip(*fits), "s--", label="photoreal fit peak")
+        right.plot(*zip(*fits), "s", label="photoreal fit peak")
     for t, r in zip(total, runs):
-        right.annotate(r["label"], (t, r["peak_mb"] / 1024), fontsize=6,
+        right.annotate(r["label"], (t, gb(r["peak_mb"])), fontsize=6,
                        textcoords="offset points", xytext=(3, 4))
     right.set(xscale="log", xlabel="training pixels, all views (millions)", ylabel="GB",
               title="Peak memory")

@@ -21,6 +21,8 @@ One row of images at half size (a reference beside a run's test views):
 writes assets/gallery/NAME.png. Several rows, one below the other (each
 argument a comma-separated list of images; images wider than 256 px at half size):
     python3 scripts/make_gallery.py --rows NAME.png IMAGE,IMAGE... IMAGE,...
+Rows of images all brought to WIDTH pixels wide (runs at two sizes side by side):
+    python3 scripts/make_gallery.py --rows-at WIDTH NAME.png IMAGE,IMAGE... IMAGE,...
 """
 import shutil
 import sys
@@ -105,6 +107,16 @@ def main():
         rows = [row([fit(on_white(p)) for p in arg.split(",")]) for arg in sys.argv[3:]]
         column(rows).save(out / sys.argv[2])
         print(f"wrote {out / sys.argv[2]}")
+        return
+    if len(sys.argv) >= 5 and sys.argv[1] == "--rows-at":
+        width = int(sys.argv[2])
+
+        def at_width(im):
+            return im.resize((width, im.height * width // im.width), Image.LANCZOS)
+
+        rows = [row([at_width(on_white(p)) for p in arg.split(",")]) for arg in sys.argv[4:]]
+        column(rows).save(out / sys.argv[3])
+        print(f"wrote {out / sys.argv[3]}")
         return
     if len(sys.argv) == 6 and sys.argv[1] == "--scene":
         scene_gallery(sys.argv[2], *(Path(a) for a in sys.argv[3:]), out)

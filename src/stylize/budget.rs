@@ -245,7 +245,7 @@ pub(crate) fn plan(
         keep_content_features: job.config.keep_content_features,
         step_mb: step_mb(view_lists_mb(list_bytes_per_ray, largest.max(w * h))),
         configured_cache_mb: job.config.sample_cache_mb,
-        lists_mb: views as f64 * view_lists_mb(list_bytes_per_ray, w * h),
+        lists_mb: stage_lists_mb(list_bytes_per_ray, (views, w * h), fine.map(|d| (d.train.len(), largest))),
     };
     MemoryPlan::new(inputs, budget_mb, source).map(Some)
 }
@@ -290,6 +290,17 @@ pub fn template_bytes(method: Method, references: usize, width: usize, height: u
 /// references' bytes a ray (with [`LIST_MARGIN`]).
 pub fn view_lists_mb(list_bytes_per_ray: f64, pixels: usize) -> f64 {
     LIST_MARGIN * list_bytes_per_ray * pixels as f64 / MB
+}
+
+/// What the sample cache would fill, MB: every view's lists in the image
+/// epochs (`work`: views, pixels a view) or, with coarse epochs, in the
+/// smooth update at full size (`fine`), whichever is more: the cache is
+/// emptied and filled again for the full-size views, up to the same size
+/// (lego 400 with `--coarse-scale 2`: 1.2 GB of lists at 200 px, the
+/// whole 2 GB cache at 400).
+pub fn stage_lists_mb(list_bytes_per_ray: f64, work: (usize, usize), fine: Option<(usize, usize)>) -> f64 {
+    let lists = |(views, pixels): (usize, usize)| views as f64 * view_lists_mb(list_bytes_per_ray, pixels);
+    lists(work).max(fine.map_or(0.0, lists))
 }
 
 /// The image steps' working set where the largest view's sample lists take
@@ -355,6 +366,18 @@ mod tests {
         assert!(err.contains("--coarse-scale 2"), "{err}");
         let bare = PlanInputs { content_views: 0, ..inputs(0) };
         assert!(MemoryPlan::new(bare, 1800.0, BudgetSource::Set).is_ok());
+    }
+
+    /// With coarse epochs the cache is filled again at full size: the plan
+    /// counts the larger of the two fills (lego 400 at `--coarse-scale 2`
+    /// was planned at 4.03 GB from its 200 px lists and peaked at 5.41).
+    #[test]
+    fn the_cache_fill_counts_the_full_size_stage_of_coarse_epochs() {
+        let per_ray = 70.0;
+        let coarse = stage_lists_mb(per_ray, (100, 200 * 200), None);
+        assert_eq!(coarse, 100.0 * view_lists_mb(per_ray, 200 * 200));
+        assert_eq!(stage_lists_mb(per_ray, (100, 200 * 200), Some((100, 400 * 400))), 4.0 * coarse);
+        assert_eq!(stage_lists_mb(per_ray, (100, 200 * 200), Some((10, 400 * 400))), coarse);
     }
 
     #[test]

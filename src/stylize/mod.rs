@@ -114,6 +114,29 @@ pub struct StylizeJob {
     pub resume: bool,
 }
 
+impl StylizeJob {
+    /// Epochs of the smooth content update (Ref-NPR with it on; ARF none).
+    pub fn smooth_epochs(&self) -> usize {
+        let s = &self.config.schedule;
+        match self.method == Method::RefNpr && self.config.ablation.smooth_update {
+            true => (s.image_epochs as f32 * s.smooth_fraction).round() as usize,
+            false => 0,
+        }
+    }
+
+    /// What the run's time scales with, for its estimate: the training
+    /// pixels times the epochs (refit and image), the epochs before the
+    /// smooth update counted at the coarse views' pixels under
+    /// `schedule.coarse_scale` (1/n² of the views' own).
+    pub fn work_units(&self, train_pixels: f64) -> f64 {
+        let s = &self.config.schedule;
+        let smooth = self.smooth_epochs().min(s.image_epochs);
+        let coarse = s.ray_epochs as f64 + (s.image_epochs - smooth) as f64;
+        let n = s.coarse_scale.max(1) as f64;
+        train_pixels * (coarse / (n * n) + smooth as f64)
+    }
+}
+
 /// Which phase a logged step belongs to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]

@@ -125,12 +125,11 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
 
 /// The event a run starts with: its name, backend and work in pixels.
 fn announce_start(job: &StylizeJob, dataset: &Dataset, resumed: bool, progress: &dyn Progress) {
-    let epochs = job.config.schedule.ray_epochs as f64 + job.config.schedule.image_epochs as f64;
     progress.event(Event::JobStart(Work {
         job: job_name(job.method),
         backend: job.backend.to_string(),
         shape: dataset.shape_name().into(),
-        units: dataset.train_pixels() * epochs,
+        units: job.work_units(dataset.train_pixels()),
         pixels: dataset.train_pixels(),
         resumed,
     }));
@@ -384,7 +383,7 @@ impl<'a> Stylization<'a> {
         let s = &job.config.schedule;
         let views = self.step.dataset().train.len();
         let total_steps = s.image_epochs * views;
-        let smooth_start = s.image_epochs - self.smooth_epochs().min(s.image_epochs);
+        let smooth_start = s.image_epochs - self.job.smooth_epochs().min(s.image_epochs);
         if !job.config.optim.keep_state && start == 0 {
             self.step.field.reset_optimiser();
         }
@@ -436,15 +435,6 @@ impl<'a> Stylization<'a> {
             progress.event(Event::Detail(format!("{phase} steps: {}", profile::describe(parts))));
         }
         Ok(())
-    }
-
-    /// Epochs of the smooth content update (Ref-NPR with it on; ARF none).
-    fn smooth_epochs(&self) -> usize {
-        let s = &self.job.config.schedule;
-        match self.job.method == Method::RefNpr && self.job.config.ablation.smooth_update {
-            true => (s.image_epochs as f32 * s.smooth_fraction).round() as usize,
-            false => 0,
-        }
     }
 
     /// One image step, checked, reported and added to the curve. Returns
@@ -507,6 +497,12 @@ impl<'a> Stylization<'a> {
             }
             _ => None,
         };
+        if !self.job.config.colour_map.in_smooth_update {
+            // Nothing of the old guides is read again: freed before the new
+            // ones are built, not held beside them (with coarse epochs they
+            // were held beside the full-size sample cache: lego 400's peak).
+            (guidance.guides, guidance.template) = (Vec::new(), None);
+        }
         let m = transfer::measure(|| -> Result<_> {
             let t = guides::template(&self.step, styles)?;
             Ok((guides::guides(&self.step, Some(&t), None, None, progress)?.0, t))
@@ -623,6 +619,7 @@ fn job_name(method: Method) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::stylize::config::StylizeConfig;
     use crate::util::costs::Ledger;
 
     /// Both methods find the reference machine's record before this machine has one.
@@ -640,5 +637,36 @@ mod tests {
             };
             assert!(ledger.estimate(&work).is_some(), "no estimate for {}", work.job);
         }
+    }
+
+    /// Coarse epochs count at the coarse views' pixels, the smooth update
+    /// at the views' own: the estimate of a `--coarse-scale 2` run is not
+    /// the full-size run's (lego 400's was, at 1 h 30 min).
+    #[test]
+    fn coarse_epochs_count_at_their_pixels_in_the_estimate() {
+        let job = |method, coarse_scale| {
+            let mut config = StylizeConfig::default();
+            config.schedule.coarse_scale = coarse_scale;
+            StylizeJob {
+                photo: "photo".into(),
+                case: "case".into(),
+                out: "out".into(),
+                config,
+                method,
+                backend: Default::default(),
+                style: None,
+                data: None,
+                registration: None,
+                render_test: false,
+                resume: false,
+            }
+        };
+        // The default schedule: 2 refit epochs, 10 image epochs of which the last 3 smooth.
+        let full = job(Method::RefNpr, 1);
+        assert_eq!(full.smooth_epochs(), 3);
+        assert_eq!(full.work_units(1000.0), 12_000.0);
+        assert_eq!(job(Method::RefNpr, 2).work_units(1000.0), 1000.0 * (9.0 / 4.0 + 3.0));
+        assert_eq!(job(Method::Arf, 1).smooth_epochs(), 0);
+        assert_eq!(job(Method::Arf, 1).work_units(1000.0), 12_000.0);
     }
 }
