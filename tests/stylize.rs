@@ -152,6 +152,7 @@ fn tcm_search_matches_brute_force() {
         colour_values: Tensor::zeros([nk, 3], &d),
         local: false,
         kept_keys: None,
+        sizes: Vec::new(),
     };
     // Chunk 64: several chunks and a ragged last one.
     let got = template.matches(&[floats(q.clone(), [nq, c], &d)], 64);
@@ -802,7 +803,9 @@ fn a_recolouring_reaches_the_unseen_side_through_the_colour_map() {
 /// the image epochs on the 32 px views, the smooth update on the 64 px
 /// ones. The run registers the coarse views, reports the full size, moves
 /// the test views towards the stylized twin by at least 1 dB as a full-size
-/// run does, and keeps the density; ARF is refused before anything is
+/// run does, and keeps the density; with `coarse_matches` (the smooth
+/// update's TCM matched on the coarse views, carried to full size) the same
+/// within 1 dB, and a different field; ARF is refused before anything is
 /// written, and a schedule without a smooth epoch by its validation.
 #[test]
 fn coarse_epochs_stylize_the_tiny_scene_and_end_at_full_size() {
@@ -823,6 +826,19 @@ fn coarse_epochs_stylize_the_tiny_scene_and_end_at_full_size() {
     let d = common::device();
     let (a, b) = (checkpoint::load_with(&photo, &d, false).unwrap(), checkpoint::load_with(&out, &d, false).unwrap());
     assert_eq!(to_vec(a.grid.density.clone()), to_vec(b.grid.density.clone()), "density changed");
+
+    // The smooth update's matches found on the coarse views and carried to
+    // full size: a different field, as close to the twin.
+    let carried_out = t.path().join("carried");
+    let mut carried = config.clone();
+    carried.schedule.coarse_matches = true;
+    run_stylize(&job(&photo, &case, &carried_out, carried, Method::RefNpr), &refnpr::Quiet).unwrap();
+    let with_carried = test_psnr(&carried_out, &twin);
+    eprintln!("coarse matches carried to full size: {with_carried:.2} dB (found at full size: {after:.2} dB)");
+    assert!(with_carried >= before + 1.0, "carried {with_carried:.2} dB vs photoreal {before:.2} dB");
+    assert!((with_carried - after).abs() <= 1.0, "carried {with_carried:.2} dB vs found at full size {after:.2} dB");
+    let c = checkpoint::load_with(&carried_out, &d, false).unwrap();
+    assert_ne!(to_vec(b.grid.sh.clone()), to_vec(c.grid.sh.clone()), "the carried matches changed nothing");
 
     let arf_out = t.path().join("arf");
     let err = run_stylize(&job(&photo, &case, &arf_out, config.clone(), Method::Arf), &refnpr::Quiet).unwrap_err();

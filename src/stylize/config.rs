@@ -114,6 +114,13 @@ pub struct ScheduleConfig {
     /// smaller, the smooth update on the views at full size (1: all at full
     /// size). Cost follows pixels; the grid does not change with it.
     pub coarse_scale: u32,
+    /// With `coarse_scale` > 1: the smooth update's TCM matches are found
+    /// on the coarse views (content renders, VGG16 and the nearest-neighbour
+    /// search at 1/n² of the pixels) and carried to full size, each
+    /// full-size position taking its coarse position's match offset within
+    /// its n x n block; false: found again at full size, where the search's
+    /// pairs grow with the square of the pixels.
+    pub coarse_matches: bool,
 }
 
 impl Default for ScheduleConfig {
@@ -132,6 +139,7 @@ impl Default for ScheduleConfig {
             eps: 1e-8,
             checkpoint_every: 50,
             coarse_scale: 1,
+            coarse_matches: false,
         }
     }
 }

@@ -7,6 +7,7 @@ use anyhow::Result;
 use burn::tensor::Tensor;
 
 use crate::scene::camera::Camera;
+use crate::scene::data::View;
 use crate::stylize::Method;
 use crate::stylize::colour_map::ColourMap;
 use crate::stylize::config::WhiteOn;
@@ -134,6 +135,57 @@ pub(crate) fn guides(
         progress.event(Event::Step { phase: Phase::Guides, done: v + 1, total: n, message: String::new() });
     }
     Ok((out, matched))
+}
+
+/// One view's TCM matches found on a coarse render (`coarse_matches`):
+/// per block, indices into the coarse template's keys, and the render's
+/// `[height, width]`.
+pub(crate) struct CoarseMatches {
+    indices: Vec<Vec<usize>>,
+    size: [usize; 2],
+}
+
+/// `schedule.coarse_matches`, first half: TCM's matches between `st`'s
+/// views as they are now (the coarse ones) and `template` (the references
+/// at the coarse size). Rendering, VGG16 and the search run at the coarse
+/// views' pixels: 1/n² of the renders and features, 1/n⁴ of the pairs.
+pub(crate) fn coarse_matches(
+    st: &StyleStep,
+    template: &Template,
+    progress: &dyn Progress,
+) -> Result<Vec<CoarseMatches>> {
+    let n = st.dataset().train.len();
+    progress.event(Event::Start { phase: Phase::Guides, done: 0, total: n });
+    let mut out = Vec::with_capacity(n);
+    for v in 0..n {
+        let content = st.render_view(v);
+        let (raw, _) = tcm::image_features(&st.vgg, &content, &st.ad, &st.method().feature_blocks(), false)?;
+        let indices = template.match_indices(&raw, st.cfg().search_chunk);
+        out.push(CoarseMatches { indices, size: [content.height, content.width] });
+        progress.event(Event::Step { phase: Phase::Guides, done: v + 1, total: n, message: String::new() });
+    }
+    Ok(out)
+}
+
+/// `schedule.coarse_matches`, second half: the smooth update's guides, the
+/// coarse matches carried to `full` (the template at the references' own
+/// size) and to `st`'s views, now the full-size ones
+/// (`Template::matches_at_full_size`). None where they cannot be carried
+/// (a local edit).
+pub(crate) fn carried_guides(
+    st: &StyleStep,
+    coarse: &Template,
+    matches: Vec<CoarseMatches>,
+    full: &Template,
+) -> Option<Vec<ViewGuide>> {
+    let scale = st.cfg().schedule.coarse_scale as usize;
+    let views = st.dataset().train.iter().zip(matches);
+    let carry = |(view, m): (&View, CoarseMatches)| {
+        let size = [view.camera.intrinsics.height as usize, view.camera.intrinsics.width as usize];
+        let matches = full.matches_at_full_size(coarse, &m.indices, m.size, size, scale)?;
+        Some(ViewGuide { content: ContentFeatures::Unused, matches, edit_votes: Vec::new(), colour: None })
+    };
+    views.map(carry).collect()
 }
 
 /// Features kept per block, as f16 when `half`.

@@ -12,6 +12,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
+use crate::stylize::config::StylizeConfig;
 use crate::stylize::{CurvePoint, Method, StylizeJob};
 use crate::util::tensor_file::{self, ArrayRef};
 
@@ -71,6 +72,21 @@ impl JobKey {
             config: toml::to_string(&job.config).unwrap_or_default(),
         }
     }
+
+    /// Whether `self` and `other` are the same job: the same method and
+    /// inputs, and configs that read as the same `StylizeConfig` (a key
+    /// added since the file was written reads as its default, so an older
+    /// resume file still resumes where its run's settings are unchanged);
+    /// configs that do not parse compare as text.
+    pub fn same_job(&self, other: &JobKey) -> bool {
+        let parse = |c: &str| toml::from_str::<StylizeConfig>(c).ok();
+        let configs = match (parse(&self.config), parse(&other.config)) {
+            (Some(a), Some(b)) => a == b,
+            _ => self.config == other.config,
+        };
+        (&self.method, &self.photo, &self.case, &self.style) == (&other.method, &other.photo, &other.case, &other.style)
+            && configs
+    }
 }
 
 pub fn path(out: &Path) -> PathBuf {
@@ -106,7 +122,7 @@ impl ResumeState {
         }
         let state = Self::read(&file)?;
         let key = JobKey::of(job);
-        if state.job != key {
+        if !state.job.same_job(&key) {
             bail!(
                 "{} belongs to another stylization (method, inputs or config differ: it was {:?} of {} after {}); \
                  run without --resume to start again, or choose another output folder",
@@ -140,5 +156,32 @@ impl ResumeState {
     /// Removes the state of a finished run.
     pub fn remove(out: &Path) {
         std::fs::remove_file(path(out)).ok();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn key(config: String) -> JobKey {
+        JobKey { method: Method::RefNpr, photo: "run".into(), case: "case".into(), style: None, config }
+    }
+
+    /// A resume file written before a config key existed (its TOML without
+    /// the key) is the same job while the key is at its default, another
+    /// job when the key is set; another input is another job.
+    #[test]
+    fn a_key_added_since_the_file_reads_as_its_default() {
+        let config = StylizeConfig::default();
+        let now = key(toml::to_string(&config).unwrap());
+        let line = "coarse_matches = false\n";
+        assert!(now.config.contains(line), "the test's key is not in the TOML");
+        let older = key(now.config.replacen(line, "", 1));
+        assert_ne!(older.config, now.config);
+        assert!(older.same_job(&now), "a file without the new key was refused");
+        let mut set = config.clone();
+        set.schedule.coarse_matches = true;
+        assert!(!older.same_job(&key(toml::to_string(&set).unwrap())), "a changed setting was accepted");
+        assert!(!now.same_job(&JobKey { case: "other".into(), ..now.clone() }), "another case was accepted");
     }
 }

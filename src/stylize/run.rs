@@ -23,9 +23,10 @@ use crate::stylize::outputs::{render_test_views, save_outputs};
 use crate::stylize::recolouring::{FittedMap, explained_on_content, fit_colour_map, with_recolouring_schedule};
 use crate::stylize::region::PixelRegion;
 use crate::stylize::resume::{self, JobKey, ResumeState};
-use crate::stylize::step::{Guidance, StyleStep};
+use crate::stylize::step::{Guidance, StyleStep, ViewGuide};
 use crate::stylize::strokes;
 use crate::stylize::styles::is_background;
+use crate::stylize::tcm::Template;
 use crate::stylize::{CurvePoint, HeldMemory, LocalEditReport, Method, StepKind, StylizeJob, StylizeReport};
 use crate::util::costs::Work;
 use crate::util::diverged;
@@ -477,19 +478,6 @@ impl<'a> Stylization<'a> {
         resumed_past: bool,
         progress: &dyn Progress,
     ) -> Result<Transfers> {
-        let fine_styles;
-        let styles = match self.fine.take() {
-            Some(fine) => {
-                progress.info(format!(
-                    "smooth update on the views at full size ({} views)",
-                    coarse::view_size(fine.dataset).map(|[w, h]| format!("{w}x{h}")).unwrap_or_default()
-                ));
-                self.step.use_views(fine.dataset, fine.registration);
-                fine_styles = fine.styles;
-                &fine_styles[..]
-            }
-            None => styles,
-        };
         let now = match (&self.smooth_sh, resumed_past) {
             (Some(then), true) => {
                 let then = self.step.sh_tensor(then);
@@ -503,10 +491,7 @@ impl<'a> Stylization<'a> {
             // were held beside the full-size sample cache: lego 400's peak).
             (guidance.guides, guidance.template) = (Vec::new(), None);
         }
-        let m = transfer::measure(|| -> Result<_> {
-            let t = guides::template(&self.step, styles)?;
-            Ok((guides::guides(&self.step, Some(&t), None, None, progress)?.0, t))
-        });
+        let m = transfer::measure(|| self.smooth_guides(styles, progress));
         let (mut guides, t) = m.value?;
         if self.job.config.colour_map.in_smooth_update {
             // L_color stays, with the first guides' targets (from the photo content renders).
@@ -520,6 +505,33 @@ impl<'a> Stylization<'a> {
             None => self.smooth_sh = Some(to_vec(self.step.field.grid.sh.clone())),
         }
         Ok(m.moved)
+    }
+
+    /// The smooth update's template and guides from the field as it is,
+    /// on the views at full size (coarse epochs switch to them here); with
+    /// `schedule.coarse_matches`, TCM matched on the coarse views first and
+    /// carried to full size.
+    fn smooth_guides(&mut self, styles: &[Image], progress: &dyn Progress) -> Result<(Vec<ViewGuide>, Template)> {
+        let Some(fine) = self.fine.take() else {
+            let t = guides::template(&self.step, styles)?;
+            return Ok((guides::guides(&self.step, Some(&t), None, None, progress)?.0, t));
+        };
+        let coarse = match self.job.config.schedule.coarse_matches {
+            true => {
+                let t = guides::template(&self.step, styles)?;
+                let matches = guides::coarse_matches(&self.step, &t, progress)?;
+                Some((t, matches))
+            }
+            false => None,
+        };
+        let size = coarse::view_size(fine.dataset).map(|[w, h]| format!("{w}x{h}")).unwrap_or_default();
+        progress.info(format!("smooth update on the views at full size ({size} views)"));
+        self.step.use_views(fine.dataset, fine.registration);
+        let t = guides::template(&self.step, &fine.styles)?;
+        if let Some(carried) = coarse.and_then(|(c, matches)| guides::carried_guides(&self.step, &c, matches, &t)) {
+            return Ok((carried, t));
+        }
+        Ok((guides::guides(&self.step, Some(&t), None, None, progress)?.0, t))
     }
 
     /// Files the step profile of the phase that just ended under `phase`.

@@ -143,6 +143,9 @@ pub struct Template {
     /// reference positions at least half kept (`PairRegion::kept`; None when
     /// there are none).
     pub kept_keys: Option<Tensor<2>>,
+    /// Each reference's content render size, `[height, width]`: where its
+    /// positions lie in the keys (`matches_at_full_size`).
+    pub sizes: Vec<[usize; 2]>,
 }
 
 /// A (content, style) pair of one reference view and, in a local edit, its region.
@@ -274,6 +277,7 @@ impl Template {
             colour_values: Tensor::cat(cvalues, 0),
             local: pairs.iter().any(|p| p.region.is_some()),
             kept_keys: (!kept.is_empty()).then(|| Tensor::cat(kept, 0)),
+            sizes: pairs.iter().map(|p| [p.content.height, p.content.width]).collect(),
         })
     }
 
@@ -293,14 +297,49 @@ impl Template {
     /// Eq. 7 for every position of each block: the index of the nearest
     /// template position (cosine), from a view's raw content features.
     pub fn matches(&self, content: &[Tensor<2>], chunk: usize) -> Vec<Tensor<1, Int>> {
+        let device = self.keys[0].device();
+        let to_tensor = |idx: Vec<usize>| indices(idx.into_iter().map(|i| i as i32).collect(), &device);
+        self.match_indices(content, chunk).into_iter().map(to_tensor).collect()
+    }
+
+    /// `matches` as indices on the host.
+    pub fn match_indices(&self, content: &[Tensor<2>], chunk: usize) -> Vec<Vec<usize>> {
         content
             .iter()
             .zip(&self.keys)
-            .map(|(c, k)| {
-                let (idx, _) = nearest_by_dot(crate::vgg::features::normalise_rows(c.clone()), k.clone(), chunk);
-                indices(idx.into_iter().map(|i| i as i32).collect(), &k.device())
-            })
+            .map(|(c, k)| nearest_by_dot(crate::vgg::features::normalise_rows(c.clone()), k.clone(), chunk).0)
             .collect()
+    }
+
+    /// Matches found between a view and the references `n` times smaller
+    /// (`coarse`: per block, the indices into `self_coarse`'s keys, from a
+    /// `view_coarse` = `[height, width]` render) carried to this template,
+    /// the references at full size, for the view at `view_fine`: each
+    /// full-size position takes the match of the coarse position it lies
+    /// in, offset by its place within its n x n block, so the 2-D layout of
+    /// the matched reference patch is kept. A local edit's template keeps
+    /// only its edited cells, not a grid: not carried (None).
+    pub fn matches_at_full_size(
+        &self,
+        self_coarse: &Template,
+        coarse: &[Vec<usize>],
+        view_coarse: [usize; 2],
+        view_fine: [usize; 2],
+        n: usize,
+    ) -> Option<Vec<Tensor<1, Int>>> {
+        if self.local || self_coarse.local || self.sizes.len() != self_coarse.sizes.len() {
+            return None;
+        }
+        let device = self.keys[0].device();
+        let blocks = FEATURE_BLOCKS.iter().zip(coarse);
+        let carried = blocks.map(|(block, idx)| {
+            let grids = |sizes: &[[usize; 2]]| sizes.iter().map(|&[h, w]| block_size(block, h, w)).collect::<Vec<_>>();
+            let views = [view_coarse, view_fine].map(|[h, w]| block_size(block, h, w));
+            let refs = [grids(&self_coarse.sizes), grids(&self.sizes)];
+            let carried = carry_matches(idx, views, &refs, n);
+            indices(carried.into_iter().map(|i| i as i32).collect(), &device)
+        });
+        Some(carried.collect())
     }
 
     /// Eq. 6: the guidance features of block `b` for matched indices.
@@ -341,6 +380,46 @@ impl Template {
             weight: 1.0,
         }
     }
+}
+
+/// One block's matches carried from a coarse grid to the full-size one
+/// (`Template::matches_at_full_size`): `idx` indexes the coarse references'
+/// positions (`refs[0]`: each reference's `[rows, cols]`, concatenated
+/// row-major one after another) for every position of the coarse view's
+/// grid `views[0]`; the result, the full-size references' positions
+/// (`refs[1]`) for every position of `views[1]`.
+fn carry_matches(idx: &[usize], views: [[usize; 2]; 2], refs: &[Vec<[usize; 2]>; 2], n: usize) -> Vec<usize> {
+    let [[crows, ccols], [frows, fcols]] = views;
+    let offsets = |grids: &[[usize; 2]]| {
+        grids
+            .iter()
+            .scan(0, |at, &[r, c]| {
+                let start = *at;
+                *at += r * c;
+                Some(start)
+            })
+            .collect::<Vec<_>>()
+    };
+    let (coarse_at, fine_at) = (offsets(&refs[0]), offsets(&refs[1]));
+    // A full-size row or column: the coarse one it lies in, and its place there.
+    let split = |p: usize, coarse_len: usize| {
+        let c = (p / n).min(coarse_len - 1);
+        (c, (p - c * n).min(n - 1))
+    };
+    let mut out = Vec::with_capacity(frows * fcols);
+    for y in 0..frows {
+        let (cy, dy) = split(y, crows);
+        for x in 0..fcols {
+            let (cx, dx) = split(x, ccols);
+            let i = idx[cy * ccols + cx];
+            let r = coarse_at.partition_point(|&start| start <= i) - 1;
+            let [_, rc] = refs[0][r];
+            let (ty, tx) = ((i - coarse_at[r]) / rc, (i - coarse_at[r]) % rc);
+            let [fr, fc] = refs[1][r];
+            out.push(fine_at[r] + (ty * n + dy).min(fr - 1) * fc + (tx * n + dx).min(fc - 1));
+        }
+    }
+    out
 }
 
 /// Colour-loss targets of one view.
@@ -476,6 +555,31 @@ mod tests {
         let fractions = cell_fractions(&speck, 8, [2, 2], 4);
         assert_eq!(fractions, vec![0.0, 0.0, 0.0, 1.0 / 16.0]);
         assert_eq!(edited_cells(&fractions), vec![3], "a region smaller than a cell keeps the cell it touches");
+    }
+
+    /// Coarse matches carried to full size at n = 2: the identity stays the
+    /// identity (each full-size position matched to itself), a match into
+    /// the second reference lands in the second reference's full-size grid
+    /// with its 2x2 layout, and an odd full-size edge (5 rows over 2 coarse
+    /// ones) takes the last coarse row, clamped to the reference's grid.
+    #[test]
+    fn coarse_matches_carry_to_full_size_keeping_the_patch_layout() {
+        let identity: Vec<usize> = (0..4).collect();
+        let refs = [vec![[2, 2]], vec![[4, 4]]];
+        assert_eq!(carry_matches(&identity, [[2, 2], [4, 4]], &refs, 2), (0..16).collect::<Vec<_>>());
+
+        // Two references of 2x2 coarse (4x4 full) positions; every coarse
+        // view position matched to the second reference's position (1, 0).
+        let refs = [vec![[2, 2], [2, 2]], vec![[4, 4], [4, 4]]];
+        let carried = carry_matches(&[6; 4], [[2, 2], [4, 4]], &refs, 2);
+        let want = |dy: usize, dx: usize| 16 + (2 + dy) * 4 + dx;
+        assert_eq!(&carried[..4], &[want(0, 0), want(0, 1), want(0, 0), want(0, 1)]);
+        assert_eq!(carried[4 + 1], want(1, 1), "row 1, column 1: the block's lower right");
+
+        let refs = [vec![[2, 1]], vec![[5, 2]]];
+        let carried = carry_matches(&[0, 1], [[2, 1], [5, 2]], &refs, 2);
+        // Rows 0-1 from coarse row 0, rows 2-4 from coarse row 1 (row 4 a second "lower" row).
+        assert_eq!(carried, vec![0, 1, 2, 3, 4, 5, 6, 7, 6, 7]);
     }
 
     /// The colour template of a region takes each patch's mean over its

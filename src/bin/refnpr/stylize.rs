@@ -231,6 +231,10 @@ pub struct StylizeArgs {
     /// smaller, the smooth update at full size ([schedule] coarse_scale; 1: all at full size).
     #[arg(long)]
     pub coarse_scale: Option<u32>,
+    /// With --coarse-scale: the smooth update's TCM matches found on the coarse views and
+    /// carried to full size ([schedule] coarse_matches).
+    #[arg(long)]
+    pub coarse_matches: bool,
     /// The run's memory budget in GB: the sample cache and the kept content features shrink
     /// to fit it, and a run that cannot fit is refused before the refit (memory_gb; 0: 90 %
     /// of the free memory).
@@ -269,6 +273,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
         style_strength,
         stroke_scale,
         coarse_scale,
+        coarse_matches,
         memory_gb,
         no_render,
         resume,
@@ -286,6 +291,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
     config.controls.style_strength = style_strength.unwrap_or(config.controls.style_strength);
     config.controls.stroke_scale = stroke_scale.unwrap_or(config.controls.stroke_scale);
     config.schedule.coarse_scale = coarse_scale.unwrap_or(config.schedule.coarse_scale);
+    config.schedule.coarse_matches |= coarse_matches;
     config.memory_gb = memory_gb.unwrap_or(config.memory_gb);
     config.register =
         config::overlay(&config.register, given_flags(&register, matches)?, "the command line", "R³ flags")?;
