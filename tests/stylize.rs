@@ -803,9 +803,9 @@ fn a_recolouring_reaches_the_unseen_side_through_the_colour_map() {
 /// the image epochs on the 32 px views, the smooth update on the 64 px
 /// ones. The run registers the coarse views, reports the full size, moves
 /// the test views towards the stylized twin by at least 1 dB as a full-size
-/// run does, and keeps the density; with `coarse_matches` (the smooth
-/// update's TCM matched on the coarse views, carried to full size) the same
-/// within 1 dB, and a different field; ARF is refused before anything is
+/// run does, and keeps the density (with the smooth update's TCM matched
+/// at full size); with `coarse_matches` (matched on the coarse views,
+/// carried to full size) the same within 1 dB, and a different field; ARF is refused before anything is
 /// written, and a schedule without a smooth epoch by its validation.
 #[test]
 fn coarse_epochs_stylize_the_tiny_scene_and_end_at_full_size() {
@@ -816,6 +816,7 @@ fn coarse_epochs_stylize_the_tiny_scene_and_end_at_full_size() {
     let out = t.path().join("style");
     let mut config = quick_config(4);
     config.schedule.coarse_scale = 2;
+    config.schedule.coarse_matches = false;
     let report = run_stylize(&job(&photo, &case, &out, config.clone(), Method::RefNpr), &refnpr::Quiet).unwrap();
     assert_eq!(report.image_size, [64, 64], "the report names the views' own size");
     assert!(report.seconds.contains_key("registration_coarse"), "{:?}", report.seconds.keys());

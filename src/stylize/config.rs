@@ -119,7 +119,10 @@ pub struct ScheduleConfig {
     /// search at 1/n² of the pixels) and carried to full size, each
     /// full-size position taking its coarse position's match offset within
     /// its n x n block; false: found again at full size, where the search's
-    /// pairs grow with the square of the pixels.
+    /// pairs grow with the square of the pixels. On by default: lego 400
+    /// and fern 1008x756 kept their Ref-LPIPS within 0.001, their renders
+    /// 41.5 and 51.3 dB from matching at full size, in 3/4 of the time
+    /// (docs/performance.md).
     pub coarse_matches: bool,
 }
 
@@ -139,7 +142,7 @@ impl Default for ScheduleConfig {
             eps: 1e-8,
             checkpoint_every: 50,
             coarse_scale: 1,
-            coarse_matches: false,
+            coarse_matches: true,
         }
     }
 }

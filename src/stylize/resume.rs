@@ -174,13 +174,13 @@ mod tests {
     fn a_key_added_since_the_file_reads_as_its_default() {
         let config = StylizeConfig::default();
         let now = key(toml::to_string(&config).unwrap());
-        let line = "coarse_matches = false\n";
-        assert!(now.config.contains(line), "the test's key is not in the TOML");
-        let older = key(now.config.replacen(line, "", 1));
+        let line = format!("coarse_matches = {}\n", config.schedule.coarse_matches);
+        assert!(now.config.contains(&line), "the test's key is not in the TOML");
+        let older = key(now.config.replacen(&line, "", 1));
         assert_ne!(older.config, now.config);
         assert!(older.same_job(&now), "a file without the new key was refused");
         let mut set = config.clone();
-        set.schedule.coarse_matches = true;
+        set.schedule.coarse_matches = !config.schedule.coarse_matches;
         assert!(!older.same_job(&key(toml::to_string(&set).unwrap())), "a changed setting was accepted");
         assert!(!now.same_job(&JobKey { case: "other".into(), ..now.clone() }), "another case was accepted");
     }

@@ -29,6 +29,15 @@ pub const SEQUENTIAL_FROM: usize = 300;
 /// The fewest photos COLMAP must register, as a fraction of those given.
 pub const MIN_REGISTERED_FRACTION: f64 = 0.5;
 
+/// The long side photos are downsized to unless told (`--max-side`):
+/// the paper's synthetic size, pictures rather than previews, at a cost two
+/// cores carry (docs/own_scene.md, "Size"): COLMAP on 20 photos 20 s at
+/// 504 px and 2:42 at 1008, a forward-facing fit at 1008x756 13 min and
+/// its stylization with `--coarse-scale 2` 32 min; a capture around the
+/// scene grows its grid with the photos (512³ at 800 px, 48 min to fit),
+/// for which `--max-side 400` is the first look.
+pub const DEFAULT_MAX_SIDE: u32 = 800;
+
 /// What `capture` can be told.
 #[derive(Debug, Clone)]
 pub struct CaptureOptions {
@@ -44,7 +53,12 @@ pub struct CaptureOptions {
 
 impl Default for CaptureOptions {
     fn default() -> Self {
-        Self { max_side: 800, camera_model: "SIMPLE_RADIAL".into(), single_camera: true, colmap: "colmap".into() }
+        Self {
+            max_side: DEFAULT_MAX_SIDE,
+            camera_model: "SIMPLE_RADIAL".into(),
+            single_camera: true,
+            colmap: "colmap".into(),
+        }
     }
 }
 

@@ -43,8 +43,9 @@ pub struct CaptureArgs {
     /// The dataset folder to write (COLMAP's log: OUT/colmap.log).
     #[arg(long)]
     pub out: PathBuf,
-    /// Photos are downsized to this long side first (pixels).
-    #[arg(long, default_value_t = 800)]
+    /// Photos are downsized to this long side first (pixels; a 12-megapixel phone photo,
+    /// 4032x3024, becomes 800x600).
+    #[arg(long, alias = "max-size", default_value_t = capture::DEFAULT_MAX_SIDE)]
     pub max_side: u32,
     /// COLMAP's camera model (SIMPLE_RADIAL, RADIAL, OPENCV, PINHOLE, ...).
     #[arg(long, default_value = "SIMPLE_RADIAL")]

@@ -232,9 +232,10 @@ pub struct StylizeArgs {
     #[arg(long)]
     pub coarse_scale: Option<u32>,
     /// With --coarse-scale: the smooth update's TCM matches found on the coarse views and
-    /// carried to full size ([schedule] coarse_matches).
-    #[arg(long)]
-    pub coarse_matches: bool,
+    /// carried to full size ([schedule] coarse_matches, on by default; false: matched again
+    /// at full size).
+    #[arg(long, num_args = 0..=1, default_missing_value = "true")]
+    pub coarse_matches: Option<bool>,
     /// The run's memory budget in GB: the sample cache and the kept content features shrink
     /// to fit it, and a run that cannot fit is refused before the refit (memory_gb; 0: 90 %
     /// of the free memory).
@@ -291,7 +292,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
     config.controls.style_strength = style_strength.unwrap_or(config.controls.style_strength);
     config.controls.stroke_scale = stroke_scale.unwrap_or(config.controls.stroke_scale);
     config.schedule.coarse_scale = coarse_scale.unwrap_or(config.schedule.coarse_scale);
-    config.schedule.coarse_matches |= coarse_matches;
+    config.schedule.coarse_matches = coarse_matches.unwrap_or(config.schedule.coarse_matches);
     config.memory_gb = memory_gb.unwrap_or(config.memory_gb);
     config.register =
         config::overlay(&config.register, given_flags(&register, matches)?, "the command line", "R³ flags")?;
