@@ -77,7 +77,11 @@ impl JobKey {
     /// inputs, and configs that read as the same `StylizeConfig` (a key
     /// added since the file was written reads as its default, so an older
     /// resume file still resumes where its run's settings are unchanged);
-    /// configs that do not parse compare as text.
+    /// configs that do not parse compare as text. A key whose default is
+    /// not what runs did before it existed (`schedule.coarse_matches`:
+    /// true, where older coarse runs matched at full size) changes what the
+    /// rest of such a resumed run does: resumed before its smooth update,
+    /// the run is the one a fresh run makes today.
     pub fn same_job(&self, other: &JobKey) -> bool {
         let parse = |c: &str| toml::from_str::<StylizeConfig>(c).ok();
         let configs = match (parse(&self.config), parse(&other.config)) {
