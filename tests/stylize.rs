@@ -805,8 +805,9 @@ fn a_recolouring_reaches_the_unseen_side_through_the_colour_map() {
 /// the test views towards the stylized twin by at least 1 dB as a full-size
 /// run does, and keeps the density (with the smooth update's TCM matched
 /// at full size); with `coarse_matches` (matched on the coarse views,
-/// carried to full size) the same within 1 dB, and a different field; ARF is refused before anything is
-/// written, and a schedule without a smooth epoch by its validation.
+/// carried to full size) the same within 1 dB, and a different field; ARF
+/// is refused before anything is written, and a schedule without a smooth
+/// epoch by its validation.
 #[test]
 fn coarse_epochs_stylize_the_tiny_scene_and_end_at_full_size() {
     let t = TempDir::new("stylize-coarse");
