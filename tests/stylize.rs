@@ -1620,6 +1620,20 @@ fn robustness_restylizes_with_the_runs_method() {
         assert!(robustness.is_finite());
         if method == Method::RefNpr {
             assert!(robustness > photoreal + 1.0, "restylized {robustness:.2} dB vs photoreal {photoreal:.2} dB");
+            // The reference held at its own camera: the stylized field is
+            // nearer the painting there than the photoreal field is.
+            let spec = &refnpr::reference::case::ReferenceCase::load(&case).unwrap().references[0];
+            let at_reference = render_surface(&photo_ck, &ds.train[1].camera).image;
+            let (w, h) = (at_reference.width as u32, at_reference.height as u32);
+            let (style, _) = refnpr::reference::case::read_style(&spec.style, w, h, ck.meta.background).unwrap();
+            let photo_psnr = refnpr::util::metrics::psnr(&style, &at_reference.rgb);
+            let held = e.reference_views[0];
+            eprintln!(
+                "reference view: stylized {:.2} dB (LPIPS {:.4}), photoreal {photo_psnr:.2} dB",
+                held.psnr, held.lpips
+            );
+            assert_eq!(e.reference_views.len(), 1);
+            assert!(held.psnr > photo_psnr + 1.0 && held.lpips.is_finite() && held.lpips > 0.0);
         }
         // Resumed: the finished restylization is kept, not run again, and gives the same figure.
         let restyled = out.join(format!("robustness/stylized_{nearest}/checkpoint.bin"));

@@ -9,6 +9,9 @@
 //!   `ref_lpips_uncalibrated` the figure refnpr printed before: LPIPS's
 //!   unweighted form (`lpips=False`) on Oxford's VGG16, comparable only with
 //!   itself;
+//! - `reference_views`: how closely the stylized field holds each reference
+//!   at the reference's own camera (the one view it is told exactly): LPIPS
+//!   (vgg) and PSNR between the painting and the render there;
 //! - `gt_psnr`, `gt_psnr_occluded`: PSNR of the stylized test views against a
 //!   ground-truth stylized dataset (the procedural scene's `stylized/`), over
 //!   all pixels and over the surface pixels no reference camera sees; also
@@ -205,6 +208,14 @@ pub struct Stability {
     pub pixels: usize,
 }
 
+/// How closely a stylized field holds one reference at the reference's
+/// own camera: LPIPS (net vgg) and PSNR between the painting and the render.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct ReferenceHeld {
+    pub lpips: f32,
+    pub psnr: f32,
+}
+
 /// What `refnpr eval --reference` writes.
 #[derive(Debug, Clone, Serialize)]
 pub struct StylizationEval {
@@ -218,6 +229,8 @@ pub struct StylizationEval {
     pub ref_lpips_uncalibrated: f32,
     /// The path frames `ref_lpips` used, per reference.
     pub ref_lpips_frames: Vec<Vec<usize>>,
+    /// Each reference against the render at its own camera.
+    pub reference_views: Vec<ReferenceHeld>,
     pub gt: Option<PathBuf>,
     pub gt_psnr: Option<f32>,
     pub gt_psnr_occluded: Option<f32>,
@@ -312,10 +325,12 @@ pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedR
     let started = std::time::Instant::now();
     let renderer = ck.renderer();
     let frames: Vec<SurfaceRender> = path.iter().map(|c| surface_of(&renderer, c)).collect();
+    let at_references: Vec<Image> = case.cameras(&dataset)?.iter().map(|c| surface_of(&renderer, c).image).collect();
     drop(renderer);
     progress.info(format!("rendered the path in {:.1} s", started.elapsed().as_secs_f64()));
     let started = std::time::Instant::now();
     let lpips = ref_lpips(&ck, &dataset, &case, &frames)?;
+    let reference_views = references_held(&ck, &case, &at_references)?;
     progress.info(format!("ref_lpips in {:.1} s", started.elapsed().as_secs_f64()));
     let truth = match &job.gt {
         Some(gt) => Some(ground_truth_psnrs(&ck, &dataset, &case, gt)?),
@@ -332,6 +347,7 @@ pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedR
         ref_lpips_alex: lpips.alex,
         ref_lpips_uncalibrated: lpips.uncalibrated,
         ref_lpips_frames: lpips.frames,
+        reference_views,
         gt: job.gt.clone(),
         gt_psnr: truth.as_ref().map(|t| t.all),
         gt_psnr_occluded: truth.as_ref().and_then(|t| t.occluded),
@@ -398,6 +414,20 @@ fn ref_lpips(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, frames: &
         }
     }
     Ok(RefLpips { vgg: calibrated[0], alex: calibrated[1], uncalibrated: mean(distances), frames: used })
+}
+
+/// Each reference's painting against `renders`, the stylized field at the
+/// reference cameras (in the case's order).
+fn references_held(ck: &Checkpoint, case: &ReferenceCase, renders: &[Image]) -> Result<Vec<ReferenceHeld>> {
+    let lpips = Lpips::load(LpipsNet::Vgg, &ck.grid.device());
+    let mut held = Vec::new();
+    for (spec, render) in case.references.iter().zip(renders) {
+        let (style, _) = case::read_style(&spec.style, render.width as u32, render.height as u32, ck.meta.background)?;
+        let style = Image::new(render.width, render.height, style);
+        let lpips = lpips.distance_of(&lpips.features(&style)?, &lpips.features(render)?)?;
+        held.push(ReferenceHeld { lpips, psnr: metrics::psnr(&style.rgb, &render.rgb) });
+    }
+    Ok(held)
 }
 
 /// Views within this angle of a reference camera's viewing direction are
