@@ -51,6 +51,9 @@ mod host_op {
         /// Returns the number of values written (extension operations
         /// return a value).
         fn read_rows_into(tensor: &FloatTensor<Self>, rows: &[i32], out: &mut [f32]) -> usize;
+        /// Writes all of `tensor`'s values (row-major) into `out`, a buffer
+        /// of exactly that length. Returns the number of values written.
+        fn read_all_into(tensor: &FloatTensor<Self>, out: &mut [f32]) -> usize;
         /// `a` and `b` (two tensors of the same shape) after `update(k, a_row,
         /// b_row)` on their rows `rows[k]`, for every `k` (a repeated row
         /// gets each update, in order).
@@ -99,6 +102,16 @@ mod host_op {
             out.len()
         }
 
+        fn read_all_into(tensor: &FloatTensor<Self>, out: &mut [f32]) -> usize {
+            if !(tensor.dtype() == DType::F32 && tensor.is_contiguous()) {
+                out.copy_from_slice(&host_values::<Self>(tensor.clone()));
+                return out.len();
+            }
+            let start = tensor.layout().start_offset();
+            out.copy_from_slice(&tensor.storage::<f32>()[start..start + out.len()]);
+            out.len()
+        }
+
         fn update_row_pairs(
             a: FloatTensor<Self>,
             b: FloatTensor<Self>,
@@ -142,6 +155,11 @@ mod host_op {
 
         fn read_rows_into(tensor: &FloatTensor<Self>, rows: &[i32], out: &mut [f32]) -> usize {
             generic_read_into::<Self>(tensor, rows, out)
+        }
+
+        fn read_all_into(tensor: &FloatTensor<Self>, out: &mut [f32]) -> usize {
+            out.copy_from_slice(&host_values::<Self>(tensor.clone()));
+            out.len()
         }
 
         fn update_row_pairs(
@@ -393,6 +411,23 @@ pub fn read_rows_into(tensor: &Tensor<2>, rows: &[i32], rows_t: &Tensor<1, Int>,
     out.copy_from_slice(&read_rows(tensor, rows, rows_t));
 }
 
+/// All of `tensor`'s values (row-major) into `out` (resized to fit), a
+/// buffer the caller keeps from step to step: a fresh grid-sized copy each
+/// step (the host ray passes read the whole SH grid) is tens of MB of page
+/// faults on a 384³ field.
+pub fn read_all_into(tensor: &Tensor<2>, out: &mut Vec<f32>) {
+    let len = tensor.dims().iter().product();
+    out.truncate(len);
+    out.resize(len, 0.0);
+    #[cfg(any(feature = "flex", feature = "ndarray"))]
+    if is_host_memory(&tensor.device()) {
+        let t = tensor.clone().into_dispatch();
+        <burn::backend::Dispatch as RowsBackend>::read_all_into(&t, out);
+        return;
+    }
+    out.copy_from_slice(&to_vec(tensor.clone()));
+}
+
 /// Calls `f` with `tensor`'s values (row-major) in blocks of whole rows,
 /// about `block_values` values each, in order, through one buffer reused
 /// from block to block: reading out a grid-sized tensor (a checkpoint save)
@@ -545,7 +580,7 @@ mod graph_oracle {
     /// a GPU's add), on every backend.
     #[test]
     fn row_gathers_and_adds_match_select_and_select_assign() {
-        use crate::kernels::rows_op::{add_to_rows, gather_rows, read_rows_into};
+        use crate::kernels::rows_op::{add_to_rows, gather_rows, read_all_into, read_rows_into};
         use crate::util::tensor::{assign_rows, indices, select_rows};
         let d = device();
         let (n, cols) = (5000, 7);
@@ -557,6 +592,10 @@ mod graph_oracle {
         let mut kept = vec![9.0; 3];
         read_rows_into(&grid, &rows, &rows_t, &mut kept);
         assert_eq!(kept, ours, "gather into a kept buffer");
+        // A view that starts inside its storage: the copy starts there too.
+        let tail = grid.clone().slice([1..n, 0..cols]);
+        read_all_into(&tail, &mut kept);
+        assert_eq!(kept, to_vec(tail), "all values into a kept buffer");
         // Adds to repeated rows on the CPU backends; a GPU's add needs
         // distinct rows (`add_to_rows`; repeats would race), as an
         // optimiser step's are.

@@ -21,6 +21,7 @@ use crate::field::grid::RadianceGrid;
 use crate::field::host_colour;
 use crate::field::march::MarchParams;
 use crate::field::optim::{Rmsprop, log_lerp};
+use crate::kernels::rows_op;
 use crate::reference::registration::RegistrationFile;
 use crate::scene::data::Dataset;
 use crate::stylize::budget;
@@ -213,6 +214,10 @@ pub struct StyleStep<'a> {
     /// others' are taken again at each of their steps): all unless the
     /// memory budget has no room for them.
     pub(crate) content_views_kept: usize,
+    /// The SH grid as host numbers for the host ray passes, refilled each
+    /// step into this one buffer (`take_host_sh`; a mutex, so that a step
+    /// can take it while its other parts still borrow the rest).
+    sh_host: std::sync::Mutex<Vec<f32>>,
 }
 
 impl<'a> StyleStep<'a> {
@@ -248,6 +253,7 @@ impl<'a> StyleStep<'a> {
             regions: None,
             sample_cache_mb: job.config.sample_cache_mb,
             content_views_kept: if job.config.keep_content_features { usize::MAX } else { 0 },
+            sh_host: std::sync::Mutex::new(Vec::new()),
         }
     }
 
@@ -369,7 +375,8 @@ impl<'a> StyleStep<'a> {
             (pseudo, tv, rows)
         });
         // The grid as host numbers, read once for the step's fused ray passes (`ray_kernel`).
-        let host_sh = (self.kernel == RayPass::Host).then(|| self.profile.time("image_render", || self.host_sh()));
+        let host_sh =
+            (self.kernel == RayPass::Host).then(|| take_host_sh(&self.sh_host, &self.field.grid.sh, &self.profile));
         let (grad, parts) = self.image_gradient(
             v,
             &samples,
@@ -392,6 +399,9 @@ impl<'a> StyleStep<'a> {
         let started = std::time::Instant::now();
         self.optimiser_step(grad, rows, lr);
         self.profile.add_since("optimiser", started);
+        if let Some(sh) = host_sh {
+            *self.sh_host.lock().expect("the SH buffer") = sh;
+        }
         Ok(CurvePoint {
             phase: if smooth { StepKind::Smooth } else { StepKind::Image },
             step,
@@ -456,9 +466,11 @@ impl<'a> StyleStep<'a> {
             let rows = self.field.step_rows(self.cfg.optim.sparse, &[&samples.cell_keys], &tv);
             (tv, rows)
         });
-        let (grad, mse) = self.profile.time("photo_loss", || match self.kernel {
-            RayPass::Host => self.host_mse_gradient(&self.host_sh(), &samples, None, &target, &rows, 1.0),
-            RayPass::Graph => {
+        let host_sh =
+            (self.kernel == RayPass::Host).then(|| take_host_sh(&self.sh_host, &self.field.grid.sh, &self.profile));
+        let (grad, mse) = self.profile.time("photo_loss", || match &host_sh {
+            Some(sh) => self.host_mse_gradient(sh, &samples, None, &target, &rows, 1.0),
+            None => {
                 let target = floats(target, [picks.len(), 3], &self.device);
                 self.mse_gradient(RaySet::Host(&samples), &rows, target, 1.0)
             }
@@ -468,12 +480,10 @@ impl<'a> StyleStep<'a> {
         let started = std::time::Instant::now();
         self.optimiser_step(grad, rows, lr);
         self.profile.add_since("optimiser", started);
+        if let Some(sh) = host_sh {
+            *self.sh_host.lock().expect("the SH buffer") = sh;
+        }
         CurvePoint::refit(step, mse)
-    }
-
-    /// The SH grid as host numbers (for `field::host_colour`).
-    fn host_sh(&self) -> Vec<f32> {
-        to_vec(self.field.grid.sh.clone())
     }
 
     /// [`mse_gradient`](Self::mse_gradient) by `field::host_colour`: `rays`
@@ -781,4 +791,15 @@ impl<'a> StyleStep<'a> {
         let parts = parts.read(&total);
         Ok((total, parts))
     }
+}
+
+/// The SH grid `sh` as host numbers (for `field::host_colour`), in the
+/// buffer `kept` from step to step (taken out of it: the caller puts it
+/// back when the step is done with it), timed as `host_sh`.
+fn take_host_sh(kept: &std::sync::Mutex<Vec<f32>>, sh: &Tensor<2>, profile: &StepProfile) -> Vec<f32> {
+    let started = std::time::Instant::now();
+    let mut values = std::mem::take(&mut *kept.lock().expect("the SH buffer"));
+    rows_op::read_all_into(sh, &mut values);
+    profile.add_since("host_sh", started);
+    values
 }
