@@ -1605,6 +1605,8 @@ fn robustness_restylizes_with_the_runs_method() {
         .unwrap();
         assert_eq!(again["method"], serde_json::to_value(method).unwrap(), "{method:?} restylized with another method");
         let robustness = e.robustness_psnr.expect("robustness asked for");
+        // The texture figure: no content.png in this case, so no tinted-photo mark.
+        assert!(e.texture.near.is_finite() && e.texture.far.is_finite() && e.texture.tinted_photo.is_none());
         // The photoreal field against the run's path renders: where a
         // restylization would stand if it learned nothing from its reference.
         let (ck, dataset) = checkpoint::load_run(&out, None, &d).unwrap();

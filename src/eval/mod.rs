@@ -7,3 +7,4 @@
 
 pub mod lpips;
 pub mod stylization;
+pub mod texture;

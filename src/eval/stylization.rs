@@ -12,6 +12,9 @@
 //! - `reference_views`: how closely the stylized field holds each reference
 //!   at the reference's own camera (the one view it is told exactly): LPIPS
 //!   (vgg) and PSNR between the painting and the render there;
+//! - `texture`: the texture figure (`eval::texture`): whether the renders
+//!   near each reference and far from it carry the painting's texture or
+//!   are a tinted photo, against the tinted photo under the painting;
 //! - `gt_psnr`, `gt_psnr_occluded`: PSNR of the stylized test views against a
 //!   ground-truth stylized dataset (the procedural scene's `stylized/`), over
 //!   all pixels and over the surface pixels no reference camera sees; also
@@ -37,6 +40,7 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::eval::lpips::{Lpips, LpipsNet};
+use crate::eval::texture;
 use crate::field::checkpoint::{self, Checkpoint};
 use crate::field::view::ViewRenderer;
 use crate::reference::case::{self, ReferenceCase};
@@ -216,6 +220,22 @@ pub struct ReferenceHeld {
     pub psnr: f32,
 }
 
+/// The texture distance (`eval::texture`) of the renders to the
+/// painting, averaged over the references: 0 is the painting's texture,
+/// `tinted_photo` what a tinted photo scores.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct TextureFigure {
+    /// The render at each reference's own camera.
+    pub at_reference: f32,
+    /// Over the path frames Ref-LPIPS uses (nearest each reference camera).
+    pub near: f32,
+    /// Over as many path frames farthest from each reference camera.
+    pub far: f32,
+    /// The photo the painting was painted over (the case's content.png),
+    /// tinted like the painting; None for a case without one.
+    pub tinted_photo: Option<f32>,
+}
+
 /// What `refnpr eval --reference` writes.
 #[derive(Debug, Clone, Serialize)]
 pub struct StylizationEval {
@@ -231,6 +251,7 @@ pub struct StylizationEval {
     pub ref_lpips_frames: Vec<Vec<usize>>,
     /// Each reference against the render at its own camera.
     pub reference_views: Vec<ReferenceHeld>,
+    pub texture: TextureFigure,
     pub gt: Option<PathBuf>,
     pub gt_psnr: Option<f32>,
     pub gt_psnr_occluded: Option<f32>,
@@ -331,6 +352,7 @@ pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedR
     let started = std::time::Instant::now();
     let lpips = ref_lpips(&ck, &dataset, &case, &frames)?;
     let reference_views = references_held(&ck, &case, &at_references)?;
+    let texture = texture_figure(&ck, &dataset, &case, &frames, &at_references)?;
     progress.info(format!("ref_lpips in {:.1} s", started.elapsed().as_secs_f64()));
     let truth = match &job.gt {
         Some(gt) => Some(ground_truth_psnrs(&ck, &dataset, &case, gt)?),
@@ -348,6 +370,7 @@ pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedR
         ref_lpips_uncalibrated: lpips.uncalibrated,
         ref_lpips_frames: lpips.frames,
         reference_views,
+        texture,
         gt: job.gt.clone(),
         gt_psnr: truth.as_ref().map(|t| t.all),
         gt_psnr_occluded: truth.as_ref().and_then(|t| t.occluded),
@@ -428,6 +451,43 @@ fn references_held(ck: &Checkpoint, case: &ReferenceCase, renders: &[Image]) -> 
         held.push(ReferenceHeld { lpips, psnr: metrics::psnr(&style.rgb, &render.rgb) });
     }
     Ok(held)
+}
+
+/// The texture figure of `frames` (the path) and `at_references` (the
+/// renders at the reference cameras) against the case's paintings.
+fn texture_figure(
+    ck: &Checkpoint,
+    dataset: &Dataset,
+    case: &ReferenceCase,
+    frames: &[SurfaceRender],
+    at_references: &[Image],
+) -> Result<TextureFigure> {
+    let device = ck.grid.device();
+    let vgg = Vgg16::load(&device);
+    let path: Vec<Camera> = frames.iter().map(|f| f.camera).collect();
+    let (w, h) = (path[0].intrinsics.width, path[0].intrinsics.height);
+    let (mut near, mut far, mut held) = (Vec::new(), Vec::new(), Vec::new());
+    for ((spec, cam), render) in case.references.iter().zip(&case.cameras(dataset)?).zip(at_references) {
+        let painting = Image::new(w as usize, h as usize, case::read_style(&spec.style, w, h, ck.meta.background)?.0);
+        let grams = texture::Grams::of(&vgg, &painting, &device)?;
+        held.push(texture::texture_distance(&vgg, render, &painting, &grams, &device)?);
+        let order = nearest_cameras(&path, cam, path.len());
+        let k = REF_LPIPS_VIEWS.min(path.len());
+        for (list, frames_used) in [(&mut near, &order[..k]), (&mut far, &order[order.len() - k..])] {
+            for &i in frames_used {
+                list.push(texture::texture_distance(&vgg, &frames[i].image, &painting, &grams, &device)?);
+            }
+        }
+    }
+    let tinted_photo = match crate::stylize::styles::painted_over(case, dataset, ck.meta.background) {
+        Some((content, painting)) => {
+            let grams = texture::Grams::of(&vgg, &painting, &device)?;
+            Some(texture::texture_distance(&vgg, &content, &painting, &grams, &device)?)
+        }
+        None => None,
+    };
+    let mean = |d: &[f32]| d.iter().sum::<f32>() / d.len().max(1) as f32;
+    Ok(TextureFigure { at_reference: mean(&held), near: mean(&near), far: mean(&far), tinted_photo })
 }
 
 /// Views within this angle of a reference camera's viewing direction are
