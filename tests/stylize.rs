@@ -1107,6 +1107,48 @@ fn a_stroke_scale_stylizes_after_the_rescaled_painting() {
     assert!(scaled.0 > scaled.1 && plain.1 > plain.0, "plain {plain:.2?}, scale 2 {scaled:.2?}");
 }
 
+/// `colour_grid_scale = 2`: the stylized field's lattice is twice as fine
+/// along each axis, its march step twice as many (finer) voxels, so the
+/// same length; the resampled frozen density keeps the surfaces (opacity of
+/// the test views within 0.02 of the photoreal field's), and the field
+/// still moves towards the stylized twin. A local edit is refused.
+#[test]
+fn a_finer_colour_grid_keeps_the_surfaces_and_stylizes() {
+    let t = TempDir::new("colour-grid");
+    let photo = tiny_photo_run(t.path(), 200, 8);
+    let scene = t.path().join("scene");
+    let case = write_case(t.path(), &scene, 0, "");
+    let out = t.path().join("style");
+    let mut config = quick_config(2);
+    config.colour_grid_scale = 2;
+    run_stylize(&job(&photo, &case, &out, config, Method::RefNpr), &refnpr::Quiet).unwrap();
+    let d = common::device();
+    let (a, b) = (checkpoint::load_with(&photo, &d, false).unwrap(), checkpoint::load_with(&out, &d, false).unwrap());
+    assert_eq!(b.grid.geometry.res, a.grid.geometry.res.map(|r| 2 * r));
+    assert_eq!(b.meta.render.march.step, 2.0 * a.meta.render.march.step);
+    let truth = data::load(&scene, &Default::default()).unwrap();
+    for v in &truth.test {
+        let (pa, pb) = (a.render_view(&v.camera).opacity, b.render_view(&v.camera).opacity);
+        let apart = pa.iter().zip(&pb).map(|(x, y)| (x - y).abs()).sum::<f32>() / pa.len() as f32;
+        assert!(apart < 0.02, "opacity moved by {apart:.4} on average");
+    }
+    let twin = data::load(&scene.join("stylized"), &Default::default()).unwrap();
+    let (before, after) = (test_psnr(&photo, &twin), test_psnr(&out, &twin));
+    eprintln!("colour grid x2: PSNR to the stylized twin: photoreal {before:.2} dB, stylized {after:.2} dB");
+    assert!(after >= before + 1.0, "stylized {after:.2} dB vs photoreal {before:.2} dB");
+
+    let local = t.path().join("local");
+    std::fs::create_dir_all(&local).unwrap();
+    std::fs::copy(case.join("style.png"), local.join("style.png")).unwrap();
+    let toml = "[[reference]]\nstyle = \"style.png\"\nview = \"train:0\"\nregion = \"difference\"\n";
+    std::fs::write(local.join("reference.toml"), toml).unwrap();
+    let mut config = quick_config(2);
+    config.colour_grid_scale = 2;
+    let edit = t.path().join("edit");
+    let err = run_stylize(&job(&photo, &local, &edit, config, Method::RefNpr), &refnpr::Quiet).unwrap_err();
+    assert!(format!("{err:#}").contains("colour_grid_scale"), "{err:#}");
+}
+
 /// `refnpr stylize --registration DIR` reads what `refnpr register` wrote
 /// and gives the very field that registering again gives; a file made for
 /// another reference view is refused with the file named.

@@ -350,9 +350,10 @@ pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedR
     drop(renderer);
     progress.info(format!("rendered the path in {:.1} s", started.elapsed().as_secs_f64()));
     let started = std::time::Instant::now();
-    let lpips = ref_lpips(&ck, &dataset, &case, &frames)?;
-    let reference_views = references_held(&ck, &case, &at_references)?;
-    let texture = texture_figure(&ck, &dataset, &case, &frames, &at_references)?;
+    let paintings = paintings_at(&ck, &case, frames[0].camera.intrinsics.width, frames[0].camera.intrinsics.height)?;
+    let lpips = ref_lpips(&ck, &dataset, &case, &frames, &paintings)?;
+    let reference_views = references_held(&ck, &case, &paintings, &at_references)?;
+    let texture = texture_figure(&ck, &dataset, &case, &frames, &paintings, &lpips.frames, &at_references)?;
     progress.info(format!("ref_lpips in {:.1} s", started.elapsed().as_secs_f64()));
     let truth = match &job.gt {
         Some(gt) => Some(ground_truth_psnrs(&ck, &dataset, &case, gt)?),
@@ -399,20 +400,27 @@ struct RefLpips {
     frames: Vec<Vec<usize>>,
 }
 
-/// Ref-LPIPS: the mean distance between each style reference and the
-/// `REF_LPIPS_VIEWS` path frames nearest its camera, through LPIPS (vgg and
-/// alex) and the uncalibrated distance; also which frames.
-fn ref_lpips(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, frames: &[SurfaceRender]) -> Result<RefLpips> {
+/// Each reference's painting at `w` x `h`, in the case's order (read once
+/// for every figure that compares with it).
+fn paintings_at(ck: &Checkpoint, case: &ReferenceCase, w: u32, h: u32) -> Result<Vec<Image>> {
+    let read = |spec: &case::ReferenceSpec| case::read_style(&spec.style, w, h, ck.meta.background);
+    case.references.iter().map(|spec| Ok(Image::new(w as usize, h as usize, read(spec)?.0))).collect()
+}
+
+/// Ref-LPIPS: the mean distance between each painting (`styles`, at the
+/// frames' size) and the `REF_LPIPS_VIEWS` path frames nearest its camera,
+/// through LPIPS (vgg and alex) and the uncalibrated distance; also which frames.
+fn ref_lpips(
+    ck: &Checkpoint,
+    dataset: &Dataset,
+    case: &ReferenceCase,
+    frames: &[SurfaceRender],
+    styles: &[Image],
+) -> Result<RefLpips> {
     let device = ck.grid.device();
     let path: Vec<Camera> = frames.iter().map(|f| f.camera).collect();
-    let (w, h) = (path[0].intrinsics.width, path[0].intrinsics.height);
-    let mut styles = Vec::new();
-    let mut used = Vec::new();
-    for (spec, cam) in case.references.iter().zip(&case.cameras(dataset)?) {
-        let (style, _) = case::read_style(&spec.style, w, h, ck.meta.background)?;
-        styles.push(Image::new(w as usize, h as usize, style));
-        used.push(nearest_cameras(&path, cam, REF_LPIPS_VIEWS));
-    }
+    let used: Vec<Vec<usize>> =
+        case.cameras(dataset)?.iter().map(|cam| nearest_cameras(&path, cam, REF_LPIPS_VIEWS)).collect();
     let mean = |d: Vec<f32>| d.iter().sum::<f32>() / d.len().max(1) as f32;
     let mut calibrated = [0.0; 2];
     for (slot, net) in calibrated.iter_mut().zip([LpipsNet::Vgg, LpipsNet::Alex]) {
@@ -440,13 +448,24 @@ fn ref_lpips(ck: &Checkpoint, dataset: &Dataset, case: &ReferenceCase, frames: &
 }
 
 /// Each reference's painting against `renders`, the stylized field at the
-/// reference cameras (in the case's order).
-fn references_held(ck: &Checkpoint, case: &ReferenceCase, renders: &[Image]) -> Result<Vec<ReferenceHeld>> {
+/// reference cameras (in the case's order); `paintings` are read again only
+/// where a reference camera's size is not theirs.
+fn references_held(
+    ck: &Checkpoint,
+    case: &ReferenceCase,
+    paintings: &[Image],
+    renders: &[Image],
+) -> Result<Vec<ReferenceHeld>> {
     let lpips = Lpips::load(LpipsNet::Vgg, &ck.grid.device());
     let mut held = Vec::new();
-    for (spec, render) in case.references.iter().zip(renders) {
-        let (style, _) = case::read_style(&spec.style, render.width as u32, render.height as u32, ck.meta.background)?;
-        let style = Image::new(render.width, render.height, style);
+    for ((spec, painting), render) in case.references.iter().zip(paintings).zip(renders) {
+        let style = match (painting.width, painting.height) == (render.width, render.height) {
+            true => painting.clone(),
+            false => {
+                let (w, h) = (render.width as u32, render.height as u32);
+                Image::new(render.width, render.height, case::read_style(&spec.style, w, h, ck.meta.background)?.0)
+            }
+        };
         let lpips = lpips.distance_of(&lpips.features(&style)?, &lpips.features(render)?)?;
         held.push(ReferenceHeld { lpips, psnr: metrics::psnr(&style.rgb, &render.rgb) });
     }
@@ -454,28 +473,31 @@ fn references_held(ck: &Checkpoint, case: &ReferenceCase, renders: &[Image]) -> 
 }
 
 /// The texture figure of `frames` (the path) and `at_references` (the
-/// renders at the reference cameras) against the case's paintings.
+/// renders at the reference cameras) against the case's `paintings`: near
+/// each reference the frames Ref-LPIPS used (`nearest`), far from it as many
+/// of the frames farthest from its camera.
 fn texture_figure(
     ck: &Checkpoint,
     dataset: &Dataset,
     case: &ReferenceCase,
     frames: &[SurfaceRender],
+    paintings: &[Image],
+    nearest: &[Vec<usize>],
     at_references: &[Image],
 ) -> Result<TextureFigure> {
     let device = ck.grid.device();
     let vgg = Vgg16::load(&device);
     let path: Vec<Camera> = frames.iter().map(|f| f.camera).collect();
-    let (w, h) = (path[0].intrinsics.width, path[0].intrinsics.height);
     let (mut near, mut far, mut held) = (Vec::new(), Vec::new(), Vec::new());
-    for ((spec, cam), render) in case.references.iter().zip(&case.cameras(dataset)?).zip(at_references) {
-        let painting = Image::new(w as usize, h as usize, case::read_style(&spec.style, w, h, ck.meta.background)?.0);
-        let grams = texture::Grams::of(&vgg, &painting, &device)?;
-        held.push(texture::texture_distance(&vgg, render, &painting, &grams, &device)?);
+    let cameras = case.cameras(dataset)?;
+    for (((painting, cam), render), near_frames) in paintings.iter().zip(&cameras).zip(at_references).zip(nearest) {
+        let grams = texture::Grams::of(&vgg, painting, &device)?;
+        held.push(texture::texture_distance(&vgg, render, painting, &grams, &device)?);
         let order = nearest_cameras(&path, cam, path.len());
-        let k = REF_LPIPS_VIEWS.min(path.len());
-        for (list, frames_used) in [(&mut near, &order[..k]), (&mut far, &order[order.len() - k..])] {
+        let far_frames = &order[order.len() - near_frames.len()..];
+        for (list, frames_used) in [(&mut near, near_frames.as_slice()), (&mut far, far_frames)] {
             for &i in frames_used {
-                list.push(texture::texture_distance(&vgg, &frames[i].image, &painting, &grams, &device)?);
+                list.push(texture::texture_distance(&vgg, &frames[i].image, painting, &grams, &device)?);
             }
         }
     }

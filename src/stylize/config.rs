@@ -508,6 +508,11 @@ pub struct StylizeConfig {
     /// Colour at voxels with empty corners, for the stylized field (its
     /// checkpoint records it, so every render of it uses the same).
     pub colour_corners: ColourCorners,
+    /// The stylized field's colour on a lattice this many times finer
+    /// along each axis than the photoreal grid's (1: the same lattice):
+    /// more voxels to hold a painting's strokes, the frozen density
+    /// resampled with it (`stylize::field::colour_grid`).
+    pub colour_grid_scale: u32,
     /// Samples whose compositing weight is below this are dropped from the cached sample lists.
     pub min_sample_weight: f32,
     /// Memory for cached per-view sample lists (MB); views beyond it are re-marched each step.
@@ -557,6 +562,7 @@ impl Default for StylizeConfig {
             vgg: VggConfig::default(),
             controls: ControlsConfig::default(),
             colour_corners: ColourCorners::Renormalised,
+            colour_grid_scale: 1,
             min_sample_weight: 1e-5,
             sample_cache_mb: 2048,
             memory_gb: 0.0,
@@ -642,6 +648,11 @@ impl StylizeConfig {
              its targets are the coarse views'"
         );
         ensure!((0.0..1.0).contains(&s.rmsprop_beta), "schedule.rmsprop_beta must be in [0, 1)");
+        ensure!(
+            (1..=3).contains(&self.colour_grid_scale),
+            "colour_grid_scale must be 1, 2 or 3 (the colour grid's memory grows with its cube), got {}",
+            self.colour_grid_scale
+        );
         ensure!(
             self.memory_gb.is_finite() && self.memory_gb >= 0.0,
             "memory_gb must be a number of GB >= 0 (0: 90 % of the free memory), got {}",

@@ -9,6 +9,7 @@ use burn::tensor::{IndexingUpdateOp, Int, Tensor};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
+use crate::field::checkpoint::CheckpointMeta;
 use crate::field::frozen::{self, DeviceSamples, FrozenSamples};
 use crate::field::grid::{CellLattice, RadianceGrid};
 use crate::field::optim::{Rmsprop, RowSubset, TvNorm, total_variation};
@@ -117,6 +118,31 @@ pub struct ShTv {
     /// `weight` per picked voxel (svox2) instead of over their mean.
     pub per_voxel: bool,
     pub per_channel: bool,
+}
+
+/// The photoreal grid as the stylized field starts from it, and `meta`
+/// with its march: cut to SH degree 0 and, with `scale` > 1
+/// (`colour_grid_scale`), resampled onto a lattice `scale` times finer along
+/// each axis, so that the colour has more voxels to hold a painting's
+/// strokes. The density, resampled with it, stays frozen and describes the
+/// same surfaces; the march keeps its step in world units (`scale` fine
+/// voxels a step), so rays take as many samples.
+pub fn colour_grid(
+    mut grid: RadianceGrid,
+    meta: &CheckpointMeta,
+    scale: u32,
+    compute: &burn::tensor::Device,
+) -> anyhow::Result<(RadianceGrid, CheckpointMeta)> {
+    // The degree-0 cut first: the resampling then moves 3 colour numbers a voxel, not 3 x 9.
+    grid.truncate_sh(0);
+    let mut meta = meta.clone();
+    if scale > 1 {
+        let res = grid.geometry.res.map(|r| r * scale as usize);
+        anyhow::Context::context(grid.upsample(res, compute), "the finer colour grid (colour_grid_scale)")?;
+        meta.render.march.step *= scale as f32;
+        meta.geometry = grid.geometry;
+    }
+    Ok((grid, meta))
 }
 
 /// The grid being stylized: SH degree 0, density frozen, RMSprop state.

@@ -56,6 +56,12 @@ impl Inputs {
             );
         }
         let image_size = preflight(job, &dataset)?;
+        ensure!(
+            !case.is_local() || job.config.colour_grid_scale == 1,
+            "{}: a local edit is composed into the photo's own lattice; colour_grid_scale must be 1, got {}",
+            job.case.display(),
+            job.config.colour_grid_scale
+        );
         // A local edit's regions, against the render the painting was made
         // over: the photoreal field with its view-dependent bands.
         let regions = match case.is_local() {

@@ -21,12 +21,12 @@ use crate::util::progress::Progress;
 pub(crate) fn save_outputs(
     step: &StyleStep,
     image_steps: usize,
-    photo_meta: &CheckpointMeta,
+    field_meta: &CheckpointMeta,
     job: &StylizeJob,
     started: Instant,
 ) -> Result<()> {
     let (config, out) = (&job.config, &job.out);
-    let mut meta = photo_meta.clone();
+    let mut meta = field_meta.clone();
     meta.run_config = serde_json::to_value(config).expect("a config is plain data");
     meta.step = image_steps;
     meta.train_seconds = started.elapsed().as_secs_f64();

@@ -17,6 +17,7 @@ use crate::scene::data::Dataset;
 use crate::stylize::budget::{self, MemoryPlan};
 use crate::stylize::coarse::{self, FineStage};
 use crate::stylize::colour_transfer::{ColourStats, ColourTransfer};
+use crate::stylize::field;
 use crate::stylize::guides::{self, ColourSource, Content};
 use crate::stylize::inputs::{self, Inputs, keeps_content, registration, style_side};
 use crate::stylize::outputs::{render_test_views, save_outputs};
@@ -66,9 +67,9 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     let (work, registration, styles, fine) =
         coarse::stages(coarse.as_ref(), &dataset, registration, styles, register_coarse)?;
     let image_size = coarse::view_size(work).unwrap_or(image_size);
-    let photo_meta = ck.meta.clone();
-    let mut st =
-        Stylization::new(job, StyleStep::new(job, work, ck.grid, &photo_meta, registration), colour_transfer, fine);
+    // The field's meta (its march) as the stylized grid has it.
+    let (grid, meta) = field::colour_grid(ck.grid, &ck.meta, job.config.colour_grid_scale, &job.backend.device())?;
+    let mut st = Stylization::new(job, StyleStep::new(job, work, grid, &meta, registration), colour_transfer, fine);
     let start = st.refit_or_resume(resumed.as_ref(), &mut phases, progress)?;
     st.step.set_regions(regions);
     if job.method == Method::RefNpr && st.step.regions.is_none() {
@@ -87,7 +88,7 @@ pub fn run_stylize(job: &StylizeJob, progress: &dyn Progress) -> Result<StylizeR
     st.apply_controls();
     let post_colour_transfer = st.post_colour_transfer(style_colours, progress)?;
     let steps = st.curve.iter().filter(|p| p.phase != StepKind::Refit).count();
-    save_outputs(&st.step, steps, &photo_meta, job, started)?;
+    save_outputs(&st.step, steps, &meta, job, started)?;
     let report = StylizeReport {
         method: job.method,
         backend: job.backend.to_string(),

@@ -231,6 +231,10 @@ pub struct StylizeArgs {
     /// smaller, the smooth update at full size ([schedule] coarse_scale; 1: all at full size).
     #[arg(long)]
     pub coarse_scale: Option<u32>,
+    /// The stylized colour on a lattice this many times finer per axis (1 to 3) than the
+    /// photo grid's, the frozen density resampled with it ([top level] colour_grid_scale).
+    #[arg(long)]
+    pub colour_grid_scale: Option<u32>,
     /// With --coarse-scale: the smooth update's TCM matches found on the coarse views and
     /// carried to full size ([schedule] coarse_matches, on by default; false: matched again
     /// at full size).
@@ -274,6 +278,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
         style_strength,
         stroke_scale,
         coarse_scale,
+        colour_grid_scale,
         coarse_matches,
         memory_gb,
         no_render,
@@ -293,6 +298,7 @@ pub fn stylize(args: StylizeArgs, matches: &ArgMatches, progress: &Console) -> R
     config.controls.stroke_scale = stroke_scale.unwrap_or(config.controls.stroke_scale);
     config.schedule.coarse_scale = coarse_scale.unwrap_or(config.schedule.coarse_scale);
     config.schedule.coarse_matches = coarse_matches.unwrap_or(config.schedule.coarse_matches);
+    config.colour_grid_scale = colour_grid_scale.unwrap_or(config.colour_grid_scale);
     config.memory_gb = memory_gb.unwrap_or(config.memory_gb);
     config.register =
         config::overlay(&config.register, given_flags(&register, matches)?, "the command line", "R³ flags")?;
