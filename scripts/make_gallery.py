@@ -23,6 +23,9 @@ argument a comma-separated list of images; images wider than 256 px at half size
     python3 scripts/make_gallery.py --rows NAME.png IMAGE,IMAGE... IMAGE,...
 Rows of images all brought to WIDTH pixels wide (runs at two sizes side by side):
     python3 scripts/make_gallery.py --rows-at WIDTH NAME.png IMAGE,IMAGE... IMAGE,...
+The same crop (X,Y,W,H in pixels) of each image, side by side, enlarged
+FACTOR times pixel for pixel (strokes a pixel or two wide, as they are):
+    python3 scripts/make_gallery.py --crop X,Y,W,H FACTOR NAME.png IMAGE...
 """
 import shutil
 import sys
@@ -117,6 +120,13 @@ def main():
         rows = [row([at_width(on_white(p)) for p in arg.split(",")]) for arg in sys.argv[4:]]
         column(rows).save(out / sys.argv[3])
         print(f"wrote {out / sys.argv[3]}")
+        return
+    if len(sys.argv) >= 6 and sys.argv[1] == "--crop":
+        x, y, w, h = (int(v) for v in sys.argv[2].split(","))
+        factor = int(sys.argv[3])
+        crops = [on_white(p).crop((x, y, x + w, y + h)) for p in sys.argv[5:]]
+        row([c.resize((w * factor, h * factor), Image.NEAREST) for c in crops]).save(out / sys.argv[4])
+        print(f"wrote {out / sys.argv[4]}")
         return
     if len(sys.argv) == 6 and sys.argv[1] == "--scene":
         scene_gallery(sys.argv[2], *(Path(a) for a in sys.argv[3:]), out)
