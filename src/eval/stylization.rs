@@ -403,8 +403,12 @@ struct RefLpips {
 /// Each reference's painting at `w` x `h`, in the case's order (read once
 /// for every figure that compares with it).
 fn paintings_at(ck: &Checkpoint, case: &ReferenceCase, w: u32, h: u32) -> Result<Vec<Image>> {
-    let read = |spec: &case::ReferenceSpec| case::read_style(&spec.style, w, h, ck.meta.background);
-    case.references.iter().map(|spec| Ok(Image::new(w as usize, h as usize, read(spec)?.0))).collect()
+    case.references.iter().map(|spec| painting_at(ck, spec, w, h)).collect()
+}
+
+/// One reference's painting at `w` x `h`.
+fn painting_at(ck: &Checkpoint, spec: &case::ReferenceSpec, w: u32, h: u32) -> Result<Image> {
+    Ok(Image::new(w as usize, h as usize, case::read_style(&spec.style, w, h, ck.meta.background)?.0))
 }
 
 /// Ref-LPIPS: the mean distance between each painting (`styles`, at the
@@ -461,10 +465,7 @@ fn references_held(
     for ((spec, painting), render) in case.references.iter().zip(paintings).zip(renders) {
         let style = match (painting.width, painting.height) == (render.width, render.height) {
             true => painting.clone(),
-            false => {
-                let (w, h) = (render.width as u32, render.height as u32);
-                Image::new(render.width, render.height, case::read_style(&spec.style, w, h, ck.meta.background)?.0)
-            }
+            false => painting_at(ck, spec, render.width as u32, render.height as u32)?,
         };
         let lpips = lpips.distance_of(&lpips.features(&style)?, &lpips.features(render)?)?;
         held.push(ReferenceHeld { lpips, psnr: metrics::psnr(&style.rgb, &render.rgb) });
