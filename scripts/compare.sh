@@ -80,14 +80,18 @@ out, rows = sys.argv[1], [r for r in sys.argv[2:] if os.path.exists(f"{sys.argv[
 names = {"refnpr": "Ref-NPR", "arf": "ARF", "torchvision": "Ref-NPR, torchvision VGG16", "arf_torchvision": "ARF, torchvision VGG16", "authors": "Ref-NPR, the authors' settings", "no_reference": "Ref-NPR w/o L_ref", "reference_rays_only": "Ref-NPR, reference rays only",
          "no_feature": "Ref-NPR w/o L_feat", "no_colour": "Ref-NPR w/o L_color", "no_smooth": "Ref-NPR w/o smooth update"}
 fmt = lambda v, d=2: "-" if v is None else f"{v:.{d}f}"
-lines = ["| method | gt_psnr | seen | unseen | near | far | Ref-LPIPS (vgg) | Ref-LPIPS (alex) | uncalibrated | speckle (path) | stability (1 / 7 frames) | time |",
-         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+lines = ["| method | gt_psnr | seen | unseen | near | far | Ref-LPIPS (vgg) | Ref-LPIPS (alex) | uncalibrated | at the reference: LPIPS, PSNR | texture at ref / near / far (tinted photo) | speckle (path) | stability (1 / 7 frames) | time |",
+         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
 for r in rows:
     e = json.load(open(f"{out}/{r}/eval.json"))
     s = json.load(open(f"{out}/{r}/stylize.json"))
     st = " / ".join(fmt(x["rmse"], 4) for x in e["stability"])
     psnrs = " | ".join(fmt(e.get(k)) for k in ["gt_psnr", "gt_psnr_seen", "gt_psnr_occluded", "gt_psnr_near", "gt_psnr_far"])
-    lines.append(f"| {names[r]} | {psnrs} | {fmt(e['ref_lpips'], 4)} | {fmt(e.get('ref_lpips_alex'), 4)} | {fmt(e.get('ref_lpips_uncalibrated'), 4)} | {100 * e['speckle']:.2f} % | {st} | {s['total_seconds'] / 60:.1f} min |")
+    # The painting held at its own camera (each reference), and the texture figure (eval::texture).
+    held = "; ".join(f"{fmt(v['lpips'], 3)}, {fmt(v['psnr'])} dB" for v in e.get("reference_views", [])) or "-"
+    t = e.get("texture")
+    tex = "-" if t is None else f"{fmt(t['at_reference'], 3)} / {fmt(t['near'], 3)} / {fmt(t['far'], 3)} ({fmt(t.get('tinted_photo'), 3)})"
+    lines.append(f"| {names[r]} | {psnrs} | {fmt(e['ref_lpips'], 4)} | {fmt(e.get('ref_lpips_alex'), 4)} | {fmt(e.get('ref_lpips_uncalibrated'), 4)} | {held} | {tex} | {100 * e['speckle']:.2f} % | {st} | {s['total_seconds'] / 60:.1f} min |")
 table = "\n".join(lines) + "\n"
 open(f"{out}/table.md", "w").write(table)
 print(table)

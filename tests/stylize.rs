@@ -1149,9 +1149,6 @@ fn a_finer_colour_grid_keeps_the_surfaces_and_stylizes() {
     assert!(format!("{err:#}").contains("colour_grid_scale"), "{err:#}");
 }
 
-/// `refnpr stylize --registration DIR` reads what `refnpr register` wrote
-/// and gives the very field that registering again gives; a file made for
-/// another reference view is refused with the file named.
 /// `refnpr bench-stylize` on the tiny scene: every phase with steps is
 /// reported, with one entry per step, and the parts of a step (timed inside
 /// it) add up to no more than the step's own time.
@@ -1187,6 +1184,9 @@ fn tiny_scene_bench_stylize_reports_each_phase_and_its_parts() {
     assert!(r.seconds.contains_key("content") && r.total_seconds > 0.0);
 }
 
+/// `refnpr stylize --registration DIR` reads what `refnpr register` wrote
+/// and gives the very field that registering again gives; a file made for
+/// another reference view is refused with the file named.
 #[test]
 fn tiny_scene_stylized_from_a_saved_registration_equals_registering_again() {
     use refnpr::reference::case::ReferenceCase;
