@@ -1678,6 +1678,14 @@ fn robustness_restylizes_with_the_runs_method() {
             );
             assert_eq!(e.reference_views.len(), 1);
             assert!(held.psnr > photo_psnr + 1.0 && held.lpips.is_finite() && held.lpips > 0.0);
+            // Its speckle, and the painting's, over the stylized field's surface pixels there.
+            let surface = render_surface(&ck, &ds.train[1].camera);
+            let mask: Vec<bool> = surface.points.iter().map(Option::is_some).collect();
+            let fraction = |rgb: &[f32]| {
+                let (speckled, counted) = refnpr::util::metrics::speckle(rgb, w as usize, h as usize, &mask);
+                speckled as f32 / counted.max(1) as f32
+            };
+            assert_eq!((held.speckle, held.painting_speckle), (fraction(&surface.image.rgb), fraction(&style)));
         }
         // Resumed: the finished restylization is kept, not run again, and gives the same figure.
         let restyled = out.join(format!("robustness/stylized_{nearest}/checkpoint.bin"));

@@ -218,6 +218,12 @@ pub struct Stability {
 pub struct ReferenceHeld {
     pub lpips: f32,
     pub psnr: f32,
+    /// Speckle (`metrics::speckle`) of the render there and of the painting
+    /// itself, over the same surface pixels: a painting's strokes count as
+    /// speckle, so this is what the path's `speckle` compares with on a
+    /// case without a ground truth.
+    pub speckle: f32,
+    pub painting_speckle: f32,
 }
 
 /// The texture distance (`eval::texture`) of the renders to the
@@ -346,13 +352,14 @@ pub fn evaluate_run(job: &EvalJob, progress: &dyn Progress) -> Result<EvaluatedR
     let started = std::time::Instant::now();
     let renderer = ck.renderer();
     let frames: Vec<SurfaceRender> = path.iter().map(|c| surface_of(&renderer, c)).collect();
-    let at_references: Vec<Image> = case.cameras(&dataset)?.iter().map(|c| surface_of(&renderer, c).image).collect();
+    let at_references: Vec<SurfaceRender> = case.cameras(&dataset)?.iter().map(|c| surface_of(&renderer, c)).collect();
     drop(renderer);
     progress.info(format!("rendered the path in {:.1} s", started.elapsed().as_secs_f64()));
     let started = std::time::Instant::now();
     let paintings = paintings_at(&ck, &case, frames[0].camera.intrinsics.width, frames[0].camera.intrinsics.height)?;
     let lpips = ref_lpips(&ck, &dataset, &case, &frames, &paintings)?;
     let reference_views = references_held(&ck, &case, &paintings, &at_references)?;
+    let at_references: Vec<Image> = at_references.into_iter().map(|r| r.image).collect();
     let texture = texture_figure(&ck, &dataset, &case, &frames, &paintings, &lpips.frames, &at_references)?;
     progress.info(format!("ref_lpips in {:.1} s", started.elapsed().as_secs_f64()));
     let truth = match &job.gt {
@@ -458,17 +465,23 @@ fn references_held(
     ck: &Checkpoint,
     case: &ReferenceCase,
     paintings: &[Image],
-    renders: &[Image],
+    renders: &[SurfaceRender],
 ) -> Result<Vec<ReferenceHeld>> {
     let lpips = Lpips::load(LpipsNet::Vgg, &ck.grid.device());
     let mut held = Vec::new();
-    for ((spec, painting), render) in case.references.iter().zip(paintings).zip(renders) {
+    for ((spec, painting), surface) in case.references.iter().zip(paintings).zip(renders) {
+        let render = &surface.image;
         let style = match (painting.width, painting.height) == (render.width, render.height) {
             true => painting.clone(),
             false => painting_at(ck, spec, render.width as u32, render.height as u32)?,
         };
         let lpips = lpips.distance_of(&lpips.features(&style)?, &lpips.features(render)?)?;
-        held.push(ReferenceHeld { lpips, psnr: metrics::psnr(&style.rgb, &render.rgb) });
+        held.push(ReferenceHeld {
+            lpips,
+            psnr: metrics::psnr(&style.rgb, &render.rgb),
+            speckle: speckle_fraction(speckle_of(surface, &render.rgb)),
+            painting_speckle: speckle_fraction(speckle_of(surface, &style.rgb)),
+        });
     }
     Ok(held)
 }
