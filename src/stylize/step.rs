@@ -428,11 +428,13 @@ impl<'a> StyleStep<'a> {
         }
     }
 
-    /// The SH TV of an image step, or of a refit step (`refit`).
+    /// The SH TV of an image step, or of a refit step (`refit`); an ARF
+    /// run's image steps take `[arf] tv_sh`.
     fn sh_tv(&self, refit: bool) -> ShTv {
         let l = &self.cfg.loss;
+        let image = if self.job.method == Method::Arf { self.cfg.arf.tv_sh } else { l.tv_sh };
         ShTv {
-            weight: if refit { l.refit_tv_sh } else { l.tv_sh },
+            weight: if refit { l.refit_tv_sh } else { image },
             fraction: l.tv_fraction,
             per_voxel: l.tv_sh_per_voxel,
             per_channel: l.tv_sh_per_channel,
